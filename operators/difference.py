@@ -1,0 +1,101 @@
+"""Difference operator: one world-model frame in, one normalised disagreement map out.
+
+Stateless (every frame carries its own past predictions), so `replicas: k` in graph.yaml splits
+frames between k processes; `threads` keeps each replica's torch share of the cores small.
+
+    diff_ssim:
+      kind: difference
+      inputs: {frame: world_model/frame}
+      params: {metric: ssim, normalization: calibrated}
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from umad_common.differences import (
+    DifferenceMetric,
+    MetricOptions,
+    build_metric,
+    calibrated,
+    load_calibration,
+    minmax,
+)
+from umad_common.operator import Context, Frame, Input, Operator, Output
+
+FRAME_ARRAYS = ("target", "recon", "preds", "pred_valid")
+
+
+class Difference(Operator):
+    """Computes one difference metric (abs, mse, ssim, perceptual, temporal or an import path)."""
+
+    kind = "difference"
+    inputs = (Input("frame"),)
+    outputs = ("map",)
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+
+        metric: str = Field(
+            "abs",
+            description="abs | mse | ssim | perceptual | temporal, or `package.module:Class` of a DifferenceMetric",
+        )
+        normalization: Literal["minmax", "calibrated"] = Field(
+            "minmax",
+            description="minmax: per frame to [0, 1] (paper); calibrated: r/(r+q) with q fitted on normal frames",
+        )
+        calibration: str = Field(
+            "umad_common/assets/calibration.json",
+            description="calibration JSON written by `umad calibrate` (used when normalization is calibrated)",
+        )
+        vgg_weights: str | None = Field(
+            None,
+            description="torchvision-format ImageNet VGG16 state dict file for the perceptual metric; "
+            "when unset, the label-free feature net is used",
+        )
+        features: str = Field(
+            "umad_common/assets/feature_net.safetensors",
+            description="label-free feature net weights (safetensors + .json config) for the perceptual metric",
+        )
+        threads: int = Field(1, ge=1, le=64, description="torch CPU threads of this replica")
+
+    def __init__(self, params: BaseModel | dict | None = None, context: Context | None = None):
+        super().__init__(params, context)
+        self._configure(self.params)
+
+    def update_params(self, params: BaseModel) -> None:
+        """Rebuild the metric and reload the calibration (a bad new file fails before anything changes)."""
+        self._configure(params)
+        self.params = params
+
+    def _configure(self, params: Params) -> None:
+        import torch
+
+        torch.set_num_threads(params.threads)
+        options = MetricOptions(
+            vgg_weights=self.context.resolve(params.vgg_weights) if params.vgg_weights else None,
+            features=self.context.resolve(params.features),
+        )
+        metric: DifferenceMetric = build_metric(params.metric, options)
+        scale = None
+        if params.normalization == "calibrated":
+            path = self.context.resolve(params.calibration)
+            scale = load_calibration(path).scale(metric.calibration_key, str(path))
+        self.metric, self.scale = metric, scale
+
+    def process(self, frame: Frame) -> dict[str, Output]:
+        message = frame.inputs["frame"]
+        missing = [name for name in FRAME_ARRAYS if name not in message.arrays]
+        if missing:
+            raise KeyError(f"{message.frame_id}: frame message lacks arrays {missing}; expected {list(FRAME_ARRAYS)}")
+        target, recon, preds, pred_valid = (message.arrays[name] for name in FRAME_ARRAYS)
+        raw = self.metric(target, recon, preds, pred_valid)
+        score = minmax(raw) if self.scale is None else calibrated(raw, self.scale)
+        meta = {"metric": self.params.metric, "normalization": self.params.normalization}
+        if self.scale is not None:
+            meta["calibration_scale"] = self.scale
+        meta.update(self.metric.notes(pred_valid))
+        return {"map": Output({"map": np.ascontiguousarray(score, dtype=np.float32)}, meta)}

@@ -1,0 +1,84 @@
+"""Fusion: one anomaly map per frame from every live difference map, as a weighted mean.
+
+Input `maps` is a wildcard port (e.g. `diff_*/map`): the runtime hands over whatever producers are
+live for the frame, waiting for all expected ones up to `deadline_ms` in live mode and always in
+lossless mode. A metric that joins or leaves mid-stream is fused in or out from that frame on; new
+weights set through the control key (`umad set fusion.weights.ssim=0.5`) apply from the next frame.
+The arithmetic (and the rule for absent metrics) is `umad_common.refine.fuse`.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from umad_common.messages import Message
+from umad_common.operator import Frame, Input, Operator, Output
+from umad_common.refine import fuse, used_weights
+
+DEFAULT_WEIGHTS = {"abs": 0.2, "mse": 0.2, "ssim": 0.2, "perceptual": 0.2, "temporal": 0.2}  # difference `metric` names
+
+
+class FusionParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    weights: dict[str, float] = Field(
+        default_factory=lambda: dict(DEFAULT_WEIGHTS),
+        description="weight in [0, 1] per metric name (a difference map's meta 'metric', else its producer id); "
+        "maps of metrics without a weight, or with weight 0, are not fused; the fused map is the weighted "
+        "mean over the metrics present in the frame",
+    )
+    deadline_ms: float = Field(
+        default=500.0,
+        gt=0,
+        description="live mode: how long after a frame's first map to wait for the other expected maps before "
+        "fusing those that arrived (the output is then marked partial); lossless mode always waits",
+    )
+
+    @field_validator("weights")
+    @classmethod
+    def _weights_in_unit_interval(cls, weights: dict[str, float]) -> dict[str, float]:
+        for metric, weight in weights.items():
+            if not 0.0 <= weight <= 1.0:
+                raise ValueError(f"weight of metric {metric!r} is {weight}; expected a value in [0, 1]")
+        return weights
+
+
+def metric_of(producer: str, msg: Message) -> str:
+    """The metric a difference map measures: its meta 'metric', else the producing operator's id."""
+    return str(msg.meta.get("metric") or producer)
+
+
+class Fusion(Operator):
+    """Weighted mean of the difference maps of a frame; records the metrics and weights it used."""
+
+    kind = "fusion"
+    inputs = (Input("maps", many=True),)
+    outputs = ("fused",)
+    Params = FusionParams
+
+    def process(self, frame: Frame) -> dict[str, Output]:
+        received = frame.many.get("maps", {})
+        if not received:
+            raise ValueError(f"fusion {frame.frame_id}: no difference maps in input 'maps'; expected at least one")
+        maps = {}
+        for producer in sorted(received):
+            msg = received[producer]
+            metric = metric_of(producer, msg)
+            if metric in maps:
+                raise ValueError(
+                    f"fusion {frame.frame_id}: two producers report metric {metric!r} "
+                    f"({sorted(p for p in received if metric_of(p, received[p]) == metric)}); expected one map per metric"
+                )
+            if "map" not in msg.arrays:
+                raise ValueError(f"fusion {frame.frame_id}: message from {producer!r} has no array 'map'")
+            maps[metric] = msg.arrays["map"]
+        weights = self.params.weights
+        fused = fuse(maps, weights)
+        used = used_weights(set(maps), weights)
+        meta = {
+            "metrics": list(used),
+            "weights": used,
+            "ignored": sorted(set(maps) - set(used)),
+            "partial": bool(frame.partial),
+        }
+        return {"fused": Output({"map": fused}, meta)}

@@ -1,0 +1,59 @@
+"""MNAD predictor: the memory-guided autoencoder baseline (Park et al. 2020) as a graph operator.
+
+Input `camera` (replayer/camera, `rgb` (H, W, 3) uint8); output `map`: the per-pixel squared L2
+reconstruction error at the model size (128x192 by default; the camera is plainly resized, so
+labels align by nearest resize). The memory is frozen at inference: the operator is stateless and
+frames may go to any replica in any order.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from umad_common.operator import Frame, Input, Operator, Output
+
+SHIPPED_WEIGHTS = Path(__file__).resolve().parent.parent / "umad_common" / "assets" / "mnad.safetensors"
+
+
+class MnadParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    weights: str | None = Field(
+        default=None,
+        description="MNAD weights (.safetensors with its .json beside it), relative to the graph folder unless "
+        "absolute; default: the checkpoint shipped for the built-in world (umad_common/assets/mnad.safetensors)",
+    )
+    threads: int = Field(default=1, ge=1, description="torch CPU threads of this operator process")
+
+
+class MnadPredictor(Operator):
+    """Per-frame MNAD anomaly map."""
+
+    kind = "mnad"
+    inputs = (Input("camera"),)
+    outputs = ("map",)
+    Params = MnadParams
+
+    def __init__(self, params=None, context=None):
+        super().__init__(params, context)
+        import torch
+
+        from umad_common.models.mnad import load_mnad
+
+        torch.set_num_threads(self.params.threads)
+        path = SHIPPED_WEIGHTS if self.params.weights is None else self.context.resolve(self.params.weights)
+        self.model, record = load_mnad(path)  # raises MnadWeightsError naming the file
+        self.weights_name = path.name
+        self.trained_on = record.get("training", {}).get("data")
+
+    def process(self, frame: Frame) -> dict[str, Output]:
+        from umad_common.models.mnad import to_input
+
+        camera = frame.inputs["camera"]
+        if "rgb" not in camera.arrays:
+            raise ValueError(f"mnad {frame.frame_id}: input 'camera' has no array 'rgb'")
+        x = to_input(camera.arrays["rgb"], self.model.cfg)  # raises on a non-(H, W, 3) uint8 image
+        score_map = self.model.anomaly_map(x)[0].numpy().astype("float32")
+        return {"map": Output({"map": score_map}, {"model": "mnad", "score": "l2", "weights": self.weights_name})}

@@ -1,0 +1,156 @@
+"""World-model predictor: per frame, the reconstruction x̂_t and the predictions x̂_{t|t-i}.
+
+Frames of a run arrive in order (ordered operator). Every `stride` received frames (seq 0, stride,
+2·stride, ...) the model takes a step: the posterior state s_t is computed from the previous state,
+the previous step's action and this frame's camera, lidar, speed and route, and decoded into x̂_t.
+The rollouts started at the previous n steps are each advanced by one prior step with the action
+actually taken, so x̂_{t|t-i} (row i-1 of `preds`) is the frame predicted from the state of i model
+steps earlier, never having seen the frames since; a new rollout starts from s_t. At a run's start
+there is no earlier state: `pred_valid[i-1]` is 0 until i steps have passed.
+
+Frames between model steps (stride > 1) get their own target and a reconstruction from the
+posterior of their own observation on top of the last step's state, without advancing the state or
+the rollouts; they carry no predictions (`preds` zeros, `pred_valid` all 0). The model was trained
+with one step per `frame_step` dataset frames (in its JSON); stride should match it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from umad_common.messages import Message
+from umad_common.models.world_model import (
+    Observation,
+    State,
+    action_of,
+    lidar_range_image,
+    load_world_model,
+    resize_route,
+    resize_rgb,
+)
+from umad_common.operator import Frame, Input, Operator, Output
+
+
+class WorldModelParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    model: str = Field(
+        default="umad_common/assets/world_model.safetensors",
+        description="world model weights (safetensors) with its JSON config beside it; relative to the graph folder",
+    )
+    horizon: int = Field(default=3, ge=1, le=32, description="n: predictions x̂_{t|t-i} for i = 1..n model steps back")
+    stride: int = Field(
+        default=1,
+        ge=1,
+        description="the model steps on every stride-th frame of a run (seq % stride == 0); frames in between get "
+        "a reconstruction from the last step's state and no predictions",
+    )
+    threads: int = Field(default=1, ge=1, description="torch CPU threads of this process")
+
+
+def array_of(frame: Frame, port: str, key: str) -> np.ndarray:
+    msg: Message | None = frame.inputs.get(port)
+    if msg is None or key not in msg.arrays:
+        raise ValueError(f"world_model {frame.frame_id}: input {port!r} lacks array {key!r}")
+    return msg.arrays[key]
+
+
+class WorldModelPredictor(Operator):
+    """Runs the world model along each run and publishes target, recon, preds and pred_valid."""
+
+    kind = "world_model"
+    inputs = (Input("camera"), Input("lidar"), Input("ego"), Input("route"))
+    outputs = ("frame",)
+    Params = WorldModelParams
+    ordered = True
+
+    def __init__(self, params: BaseModel | dict | None = None, context=None):
+        super().__init__(params, context)
+        torch.set_num_threads(self.params.threads)
+        self.model_path = self.context.resolve(self.params.model)
+        self.model, _ = load_world_model(self.model_path)
+        self.config = self.model.config
+        self.trained_frame_step = int(self.config.frame_step)
+        self.run: str | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the previous run: initial state, no rollouts, no pending action."""
+        self.state: State = self.model.initial_state(1)
+        self.rollouts: list[State] = []  # prior rollouts advanced to the last step; [i-1] started i steps before it
+        self.pending_action = torch.zeros(1, 2)
+        self.steps = 0
+
+    def update_params(self, params: BaseModel) -> None:
+        if params.model != self.params.model:
+            raise ValueError("world_model: `model` cannot change at runtime; restart the operator with the new weights")
+        horizon_changed = params.horizon != self.params.horizon
+        super().update_params(params)
+        torch.set_num_threads(params.threads)
+        if horizon_changed:
+            self.rollouts = self.rollouts[: params.horizon]
+
+    def observation(self, frame: Frame) -> tuple[Observation, np.ndarray, np.ndarray]:
+        """Model inputs (B = T = 1), the target (h, w, 3) float32 and the action (2,) of this frame."""
+        c = self.config
+        rgb = resize_rgb(np.asarray(array_of(frame, "camera", "rgb"), np.uint8), c)
+        ego = np.asarray(array_of(frame, "ego", "ego"), np.float32).reshape(-1)
+        if ego.shape != (4,):
+            raise ValueError(f"world_model {frame.frame_id}: ego has shape {ego.shape}; expected (4,) [speed, throttle, brake, steer]")
+        lidar = lidar_range_image(array_of(frame, "lidar", "points"), c)
+        route = resize_route(array_of(frame, "route", "route"), c)
+        target = rgb.astype(np.float32) / 255.0
+        obs = Observation(
+            rgb=torch.from_numpy(target).permute(2, 0, 1)[None, None],
+            lidar=torch.from_numpy(lidar)[None, None],
+            route=torch.from_numpy(route.astype(np.float32) / 255.0)[None, None, None],
+            speed=torch.tensor([[[ego[0] / c.speed_scale]]]),
+        )
+        return obs, target, action_of(ego[1], ego[2], ego[3])
+
+    @torch.no_grad()
+    def process(self, frame: Frame) -> dict[str, Output]:
+        if frame.run != self.run or frame.seq == 0:
+            self.run = frame.run
+            self.reset()
+        obs, target, action = self.observation(frame)
+        n = self.params.horizon
+        h, w = self.config.image_height, self.config.image_width
+        preds = np.zeros((n, h, w, 3), np.float32)
+        valid = np.zeros(n, np.uint8)
+        model_step = frame.seq % self.params.stride == 0
+        embed = self.model.embed(obs)[:, 0]
+        hidden = self.model.transition(self.state, self.pending_action)
+        posterior = State(hidden, self.model.posterior(hidden, embed)[0])
+        if model_step:
+            advanced = []
+            for origin in self.rollouts:
+                h_pred = self.model.transition(origin, self.pending_action)
+                advanced.append(State(h_pred, self.model.prior(h_pred)[0]))
+            batch = [posterior, *advanced]
+            images, _ = self.model.decode(State(torch.cat([s.h for s in batch]), torch.cat([s.z for s in batch])))
+            images = images.permute(0, 2, 3, 1).numpy()
+            recon = images[0]
+            preds[: len(advanced)] = images[1:]
+            valid[: len(advanced)] = 1
+            self.state = posterior
+            self.rollouts = [posterior, *advanced][:n]
+            self.pending_action = torch.from_numpy(action)[None]
+            self.steps += 1
+        else:
+            recon = self.model.decode(posterior)[0][0].permute(1, 2, 0).numpy()
+        meta = {
+            "model": self.model_path.name,
+            "model_step": bool(model_step),
+            "steps": self.steps,
+            "trained_frame_step": self.trained_frame_step,
+        }
+        arrays = {
+            "target": target,
+            "recon": np.ascontiguousarray(recon, np.float32),
+            "preds": preds,
+            "pred_valid": valid,
+        }
+        return {"frame": Output(arrays, meta)}

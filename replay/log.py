@@ -1,0 +1,149 @@
+"""MCAP logs of the bus: the recorder that writes them and the reader that survives a truncated file.
+
+Every bus message is stored as its exact payload bytes: one channel per Zenoh key,
+`message_encoding` "msgpack", `sequence` = the frame's seq, `publish_time` = the source stamp. The
+graph and the package version are stored as metadata `umad`. Foxglove views (`viz/...` channels,
+JSON schemas) may sit beside them; replay ignores those.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+from mcap.records import Channel, Message, Metadata
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from umad_common.messages import MessageError, decode
+
+
+class LogError(ValueError):
+    """A log that cannot be read (fully): says where it broke and how many messages were readable."""
+
+    def __init__(self, message: str, readable: int = 0):
+        self.readable = readable
+        super().__init__(message)
+
+
+def package_version() -> str:
+    try:
+        return version("umad")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+class McapRecorder:
+    """Thread-safe writer: `write(key, payload)` from Zenoh callbacks, `close()` once at the end."""
+
+    def __init__(self, path: str | Path, graph_text: str = "", extra_metadata: dict[str, str] | None = None):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "wb")
+        self._writer = Writer(self._file, compression=CompressionType.ZSTD if _has_zstd() else CompressionType.NONE)
+        self._writer.start(profile="umad", library=f"umad {package_version()}")
+        self._writer.add_metadata("umad", {"graph": graph_text, "version": package_version(), **(extra_metadata or {})})
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+        self._lock = threading.Lock()
+        self.count = 0
+        self.last_write = time.monotonic()
+
+    def write(self, key: str, payload: bytes) -> None:
+        try:
+            msg = decode(payload)
+            seq, stamp = msg.seq, msg.stamp_ns
+        except MessageError:
+            seq, stamp = 0, 0
+        with self._lock:
+            channel = self._channels.get(key)
+            if channel is None:
+                encoding = "json" if "/_ctl/" in key else "msgpack"
+                channel = self._channels[key] = self._writer.register_channel(key, encoding, 0)
+            self._writer.add_message(channel, time.time_ns(), bytes(payload), stamp, seq)
+            self.count += 1
+            self.last_write = time.monotonic()
+
+    def write_json(self, topic: str, schema_name: str, schema: dict, obj: dict, stamp_ns: int) -> None:
+        """A Foxglove-viewable message: JSON with a JSON schema (e.g. foxglove.RawImage)."""
+        with self._lock:
+            schema_id = self._schemas.get(schema_name)
+            if schema_id is None:
+                schema_id = self._schemas[schema_name] = self._writer.register_schema(
+                    schema_name, "jsonschema", json.dumps(schema).encode()
+                )
+            channel = self._channels.get(topic)
+            if channel is None:
+                channel = self._channels[topic] = self._writer.register_channel(topic, "json", schema_id)
+            self._writer.add_message(channel, time.time_ns(), json.dumps(obj).encode(), stamp_ns, 0)
+
+    def close(self) -> None:
+        with self._lock:
+            self._writer.finish()
+            self._file.close()
+
+
+def _has_zstd() -> bool:
+    try:
+        import zstandard  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+@dataclass
+class LogMessage:
+    topic: str
+    data: bytes
+    log_time: int
+    publish_time: int
+    sequence: int
+
+
+def read_log(path: str | Path, allow_truncated: bool = False) -> Iterator[LogMessage]:
+    """Stream the bus messages of a log in file order.
+
+    A truncated or corrupt file raises LogError saying how many messages were readable; with
+    `allow_truncated=True` those messages are yielded and reading stops quietly at the break.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise LogError(f"{path}: log file not found")
+    channels: dict[int, Channel] = {}
+    count = 0
+    with open(path, "rb") as f:
+        try:
+            for record in StreamReader(f, validate_crcs=True).records:
+                if isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Message):
+                    channel = channels.get(record.channel_id)
+                    if channel is None or channel.message_encoding != "msgpack":
+                        continue
+                    count += 1
+                    yield LogMessage(channel.topic, record.data, record.log_time, record.publish_time, record.sequence)
+        except Exception as exc:  # the mcap parser raises many types on a broken file
+            if allow_truncated:
+                return
+            raise LogError(
+                f"{path}: log is truncated or corrupt after {count} readable messages ({type(exc).__name__}: {exc}); "
+                "pass --allow-truncated to use those",
+                readable=count,
+            ) from None
+
+
+def read_metadata(path: str | Path) -> dict[str, str]:
+    """The `umad` metadata record (graph text, version), or {} if the log has none."""
+    with open(path, "rb") as f:
+        try:
+            for record in StreamReader(f).records:
+                if isinstance(record, Metadata) and record.name == "umad":
+                    return dict(record.metadata)
+        except Exception:  # a truncated file may still carry its metadata; a missing record means none
+            pass
+    return {}

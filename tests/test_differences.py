@@ -1,0 +1,351 @@
+"""Difference metrics, normalisation, VGG16/feature-net loading and the difference operator.
+
+Each formula is checked against an independent reference: explicit numpy loops for ABS, MSE,
+temporal and the perceptual sum, scikit-image for SSIM, numpy for the normalisations.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import structural_similarity
+
+from umad_common.differences import (
+    AbsDifference,
+    CalibrationError,
+    CalibrationFitter,
+    DifferenceInputError,
+    MseDifference,
+    PerceptualDifference,
+    SsimDifference,
+    TemporalDifference,
+    UnknownMetricError,
+    build_metric,
+    calibrated,
+    load_calibration,
+    minmax,
+)
+from umad_common.messages import Message
+from umad_common.models.feature_net import FeatureNet, load_feature_net, save_feature_net
+from umad_common.models.vgg16 import WeightsError, load_vgg16_features
+from umad_common.operator import Context, Frame
+
+torch.set_num_threads(1)
+
+
+def random_frame(h: int = 24, w: int = 32, n: int = 3, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    target = rng.random((h, w, 3), dtype=np.float32)
+    recon = np.clip(target + 0.2 * rng.standard_normal((h, w, 3)), 0, 1).astype(np.float32)
+    preds = rng.random((n, h, w, 3), dtype=np.float32)
+    return target, recon, preds, np.ones(n, dtype=np.uint8)
+
+
+def synthetic_frame(h: int = 48, w: int = 64):
+    """A road-like picture and a blurred, shifted reconstruction with a missing square 'object'."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    target = np.stack([yy / h, xx / w, 0.5 + 0.5 * np.sin(xx / 3)], axis=-1).astype(np.float32)
+    target[h // 3 : h // 2, w // 3 : w // 2] = (1.0, 0.1, 0.1)
+    recon = cv2.GaussianBlur(np.stack([yy / h, xx / w, 0.5 + 0.5 * np.sin(xx / 3)], -1), (5, 5), 1.0).astype(np.float32)
+    preds = np.stack([np.roll(recon, 1, axis=1), np.roll(recon, 2, axis=1)])
+    return target, recon, preds, np.array([1, 0], dtype=np.uint8)
+
+
+FRAMES = [random_frame(), random_frame(31, 45, 2, seed=1), synthetic_frame()]
+
+
+@pytest.mark.parametrize("frame", FRAMES)
+def test_abs_and_mse_match_pixel_loops(frame):
+    target, recon, preds, valid = frame
+    h, w = target.shape[:2]
+    ref_abs = np.zeros((h, w))
+    ref_mse = np.zeros((h, w))
+    for y in range(h):
+        for x in range(w):
+            d = [float(target[y, x, c]) - float(recon[y, x, c]) for c in range(3)]
+            ref_abs[y, x] = sum(abs(v) for v in d) / 3
+            ref_mse[y, x] = sum(v * v for v in d) / 3
+    got_abs = AbsDifference()(target, recon, preds, valid)
+    got_mse = MseDifference()(target, recon, preds, valid)
+    assert got_abs.dtype == np.float32 and got_abs.shape == (h, w)
+    assert got_mse.dtype == np.float32 and got_mse.shape == (h, w)
+    np.testing.assert_allclose(got_abs, ref_abs, atol=1e-6)
+    np.testing.assert_allclose(got_mse, ref_mse, atol=1e-6)
+
+
+@pytest.mark.parametrize("frame", [*FRAMES, random_frame(128, 192, 1, seed=2)])
+def test_ssim_matches_scikit_image_full_map(frame):
+    target, recon, preds, valid = frame
+    _, full = structural_similarity(
+        target.astype(np.float64),
+        recon.astype(np.float64),
+        full=True,
+        gaussian_weights=True,
+        sigma=1.5,
+        use_sample_covariance=False,
+        data_range=1,
+        channel_axis=-1,
+    )
+    got = SsimDifference()(target, recon, preds, valid)
+    assert got.dtype == np.float32 and got.shape == target.shape[:2]
+    np.testing.assert_allclose(got, 1.0 - full.mean(axis=-1), atol=1e-4)
+
+
+def test_ssim_of_identical_images_is_zero_and_tiny_images_are_refused():
+    target, _, preds, valid = random_frame()
+    np.testing.assert_allclose(SsimDifference()(target, target, preds, valid), 0.0, atol=1e-5)
+    small = np.zeros((8, 30, 3), np.float32)
+    with pytest.raises(DifferenceInputError, match="at least 11x11"):
+        SsimDifference()(small, small, np.zeros((0, 8, 30, 3), np.float32), np.zeros(0, np.uint8))
+
+
+def test_temporal_uses_only_valid_predictions():
+    target, recon, preds, _ = random_frame(12, 14, 3)
+    valid = np.array([1, 0, 1], dtype=np.uint8)
+    ref = np.zeros((12, 14))
+    for i in (0, 2):
+        for y in range(12):
+            for x in range(14):
+                ref[y, x] += sum(abs(float(preds[i, y, x, c]) - float(recon[y, x, c])) for c in range(3)) / 3 / 2
+    metric = TemporalDifference()
+    np.testing.assert_allclose(metric(target, recon, preds, valid), ref, atol=1e-6)
+    assert metric.notes(valid) == {"temporal_predictions": 2}
+
+
+def test_temporal_at_run_start_is_zeros_and_says_so():
+    target, recon, preds, _ = random_frame(12, 14, 3)
+    metric = TemporalDifference()
+    start = np.zeros(3, dtype=np.uint8)
+    out = metric(target, recon, preds, start)
+    assert out.dtype == np.float32 and out.shape == (12, 14) and not out.any()
+    assert metric.notes(start)["temporal_predictions"] == 0
+    assert "run start" in metric.notes(start)["temporal_note"]
+    no_slots = metric(target, recon, preds[:0], start[:0])
+    assert not no_slots.any()
+
+
+@pytest.mark.parametrize(
+    ("position", "bad", "pattern"),
+    [
+        (
+            0,
+            np.zeros((24, 32, 3), np.float64),
+            r"target: expected float32 array of shape \(h, w, 3\), got float64 \(24, 32, 3\)",
+        ),
+        (0, np.zeros((24, 32), np.float32), r"target: expected .*got float32 \(24, 32\)"),
+        (
+            1,
+            np.zeros((24, 31, 3), np.float32),
+            r"recon: expected float32 array of shape \(24, 32, 3\).*got float32 \(24, 31, 3\)",
+        ),
+        (2, np.zeros((3, 24, 32), np.float32), r"preds: expected float32 array of shape \(n, 24, 32, 3\), got float32"),
+        (3, np.ones(3, np.int64), r"pred_valid: expected uint8 array of shape \(3,\).*got int64 \(3,\)"),
+        (3, np.ones(2, np.uint8), r"pred_valid: expected uint8 array of shape \(3,\).*got uint8 \(2,\)"),
+        (1, [[0.0]], r"recon: expected .*got list"),
+    ],
+)
+def test_wrong_inputs_name_the_array(position, bad, pattern):
+    args = list(random_frame())
+    args[position] = bad
+    for metric in (AbsDifference(), SsimDifference(), TemporalDifference()):
+        with pytest.raises(DifferenceInputError, match=pattern):
+            metric(*args)
+
+
+class HandMadeExtractor(torch.nn.Module):
+    """Two known feature levels: the image itself and its 2x2 average pool (for the Δ_PD formula)."""
+
+    def forward(self, x):
+        return [x, torch.nn.functional.avg_pool2d(x, 2)]
+
+
+def test_perceptual_formula_matches_reference():
+    target, recon, preds, valid = random_frame(16, 24)
+    metric = PerceptualDifference(HandMadeExtractor(), "hand")
+    got = metric(target, recon, preds, valid)
+    pool = lambda im: im.reshape(8, 2, 12, 2, 3).mean(axis=(1, 3))  # noqa: E731
+    level1 = np.abs(target - recon).mean(axis=-1)
+    level2 = cv2.resize(np.abs(pool(target) - pool(recon)).mean(axis=-1), (24, 16), interpolation=cv2.INTER_LINEAR)
+    np.testing.assert_allclose(got, level1 + level2, atol=1e-5)
+    assert metric.calibration_key == "perceptual/hand"
+
+
+def torchvision_vgg16_state(seed: int = 0) -> dict[str, torch.Tensor]:
+    """Random tensors under torchvision's VGG16 keys and shapes (features + a classifier key)."""
+    gen = torch.Generator().manual_seed(seed)
+    state, channels, index = {}, 3, 0
+    for item in (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"):
+        if item == "M":
+            index += 1
+            continue
+        state[f"features.{index}.weight"] = (
+            torch.randn(item, channels, 3, 3, generator=gen) * (2 / (9 * channels)) ** 0.5
+        )
+        state[f"features.{index}.bias"] = torch.zeros(item)
+        channels, index = item, index + 2
+    state["classifier.6.bias"] = torch.zeros(1000)
+    return state
+
+
+def test_vgg16_loads_torchvision_state_dict(tmp_path):
+    state = torchvision_vgg16_state()
+    path = tmp_path / "vgg16.pth"
+    torch.save(state, path)
+    model = load_vgg16_features(path)
+    assert torch.equal(model.features[21].weight, state["features.21.weight"])
+    levels = model(torch.rand(1, 3, 32, 48))
+    assert [tuple(f.shape[1:]) for f in levels] == [(64, 32, 48), (128, 16, 24), (256, 8, 12), (512, 4, 6)]
+    target, recon, preds, valid = random_frame(32, 48)
+    metric = build_metric("perceptual", options=_options(vgg_weights=path))
+    assert metric.calibration_key == "perceptual/vgg16"
+    np.testing.assert_allclose(metric(target, target, preds, valid), 0.0, atol=0)
+    out = metric(target, recon, preds, valid)
+    assert out.dtype == np.float32 and out.shape == (32, 48) and out.min() > 0
+
+
+def test_vgg16_shape_mismatch_names_the_layer(tmp_path):
+    state = torchvision_vgg16_state()
+    state["features.5.weight"] = torch.zeros(128, 32, 3, 3)
+    path = tmp_path / "bad.pth"
+    torch.save(state, path)
+    with pytest.raises(
+        WeightsError, match=r"'features.5.weight' expected shape \(128, 64, 3, 3\), got \(128, 32, 3, 3\)"
+    ):
+        load_vgg16_features(path)
+    del state["features.5.weight"]
+    torch.save(state, path)
+    with pytest.raises(WeightsError, match=r"missing key 'features.5.weight'"):
+        load_vgg16_features(path)
+    with pytest.raises(WeightsError, match="not found"):
+        load_vgg16_features(tmp_path / "absent.pth")
+
+
+def _options(**kwargs):
+    from umad_common.differences import MetricOptions
+
+    return MetricOptions(**kwargs)
+
+
+@pytest.fixture()
+def feature_file(tmp_path):
+    torch.manual_seed(0)
+    path = tmp_path / "features.safetensors"
+    save_feature_net(FeatureNet(), path)
+    return path
+
+
+def test_feature_net_roundtrip_and_perceptual_identity(feature_file):
+    loaded = load_feature_net(feature_file)
+    assert feature_file.with_suffix(".json").is_file()
+    levels = loaded(torch.rand(2, 3, 32, 48))
+    assert [tuple(f.shape) for f in levels] == [(2, 16, 32, 48), (2, 32, 16, 24), (2, 64, 8, 12), (2, 128, 4, 6)]
+    target, recon, preds, valid = synthetic_frame()
+    metric = build_metric("perceptual", _options(features=feature_file))
+    assert metric.calibration_key == "perceptual"
+    assert not metric(target, target, preds, valid).any()
+    assert metric(target, recon, preds, valid).max() > 0
+
+
+def test_feature_training_is_deterministic_and_small():
+    from umad_common.training.train_features import FeatureTrainingConfig, train_feature_net
+
+    frames = (np.random.default_rng(0).random((12, 128, 192, 3)) * 255).astype(np.uint8)
+    cfg = FeatureTrainingConfig(epochs=1, batch_size=6)
+    a, b = train_feature_net(frames, cfg), train_feature_net(frames, cfg)
+    for key, value in a.state_dict().items():
+        assert torch.equal(value, b.state_dict()[key]), key
+    assert sum(v.numel() for v in a.state_dict().values()) * 4 < 5e6
+
+
+def test_minmax_and_calibrated_normalisation():
+    raw = np.array([[1.0, 3.0], [2.0, 5.0]], np.float32)
+    np.testing.assert_allclose(minmax(raw), [[0.0, 0.5], [0.25, 1.0]])
+    assert not minmax(np.full((3, 4), 7.0, np.float32)).any()
+    scores = calibrated(np.array([-1.0, 0.0, 0.5, 2.0, 1e6], np.float32), q=0.5)
+    np.testing.assert_allclose(scores, [0.0, 0.0, 0.5, 0.8, 1e6 / (1e6 + 0.5)], rtol=1e-6)
+    assert scores.dtype == np.float32 and scores[3] < 1.0
+
+
+def test_calibration_fit_save_load(tmp_path):
+    rng = np.random.default_rng(0)
+    maps = [rng.random((8, 8), dtype=np.float32) for _ in range(5)]
+    fitter = CalibrationFitter()
+    for m in maps:
+        fitter.add("abs", m)
+    calibration = fitter.fit({"world_model": "wm.safetensors"})
+    assert calibration.scale("abs") == pytest.approx(np.percentile(np.concatenate([m.ravel() for m in maps]), 99.9))
+    path = tmp_path / "calibration.json"
+    calibration.save(path)
+    loaded = load_calibration(path)
+    assert loaded.scales == calibration.scales and loaded.info["world_model"] == "wm.safetensors"
+    with pytest.raises(CalibrationError, match=r"no scale for metric 'ssim'; the file has \['abs'\]"):
+        loaded.scale("ssim", str(path))
+    path.write_text(json.dumps({"version": 1, "scales": {"abs": -1}}))
+    with pytest.raises(CalibrationError, match="positive number"):
+        load_calibration(path)
+
+
+def frame_message(arrays) -> Frame:
+    target, recon, preds, valid = arrays
+    msg = Message("run", 0, arrays={"target": target, "recon": recon, "preds": preds, "pred_valid": valid})
+    return Frame("run", 0, 0, inputs={"frame": msg})
+
+
+@pytest.mark.parametrize("metric", ["abs", "mse", "ssim", "perceptual", "temporal"])
+def test_operator_outputs_normalised_map(metric, feature_file, tmp_path):
+    from operators.difference import Difference
+
+    calibration = tmp_path / "calibration.json"
+    fitter = CalibrationFitter()
+    fitter.add(metric, np.linspace(0.0, 1.0, 100))
+    fitter.fit().save(calibration)
+    ctx = Context(base_dir=tmp_path)
+    frame = frame_message(synthetic_frame())
+    for normalization in ("minmax", "calibrated"):
+        op = Difference(
+            {
+                "metric": metric,
+                "normalization": normalization,
+                "features": feature_file.name,
+                "calibration": calibration.name,
+            },
+            ctx,
+        )
+        out = op.process(frame)["map"]
+        score = out.arrays["map"]
+        assert score.dtype == np.float32 and score.shape == (48, 64)
+        assert 0.0 <= score.min() and score.max() <= 1.0
+        assert out.meta["metric"] == metric and out.meta["normalization"] == normalization
+        if normalization == "minmax":
+            assert score.max() == pytest.approx(1.0)
+
+
+def test_operator_fails_early_and_loads_user_metric(tmp_path, monkeypatch):
+    from pydantic import ValidationError
+
+    from operators.difference import Difference
+
+    with pytest.raises(ValidationError):
+        Difference({"metric": "abs", "colour": "red"})
+    with pytest.raises(WeightsError, match="not found"):
+        Difference({"metric": "perceptual", "features": str(tmp_path / "none.safetensors")})
+    with pytest.raises(CalibrationError, match="calibration file not found"):
+        Difference({"metric": "abs", "normalization": "calibrated", "calibration": str(tmp_path / "none.json")})
+    with pytest.raises(UnknownMetricError, match="unknown metric 'nope'"):
+        Difference({"metric": "nope"})
+    (tmp_path / "my_metrics.py").write_text(
+        "import numpy as np\nfrom umad_common.differences import DifferenceMetric\n"
+        "class RedDifference(DifferenceMetric):\n"
+        "    def compute(self, target, recon, preds, pred_valid):\n"
+        "        return np.abs(target[..., 0] - recon[..., 0])\n"
+    )
+    monkeypatch.setattr(sys, "path", [str(tmp_path), *sys.path])
+    op = Difference({"metric": "my_metrics:RedDifference"})
+    target, recon, preds, valid = random_frame()
+    score = op.process(frame_message((target, recon, preds, valid)))["map"].arrays["map"]
+    np.testing.assert_allclose(score, minmax(np.abs(target[..., 0] - recon[..., 0])), atol=1e-6)

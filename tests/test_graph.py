@@ -1,0 +1,99 @@
+import pytest
+import yaml
+
+from tests.conftest import run_umad
+from umad_common.graph import GraphError, load_graph, validate_graph
+
+SOURCE = {"id": "src", "uses": "tests.toy_ops:CounterSource"}
+SCALE = {"id": "scale", "uses": "tests.toy_ops:Scale", "inputs": {"x": "src/value"}}
+SINK = {"id": "sink", "uses": "tests.toy_ops:JoinSink", "inputs": {"a": "src/value", "b": "scale/y"}}
+
+
+def graph(*ops, **top):
+    return {"name": "t", "operators": [dict(o) for o in ops], **top}
+
+
+def problems(data) -> str:
+    with pytest.raises(GraphError) as info:
+        validate_graph(data)
+    return "\n".join(info.value.problems)
+
+
+def test_valid_graph_resolves_sources_and_sinks():
+    g = validate_graph(graph(SOURCE, SCALE, SINK))
+    assert g.sources() == ["src"] and g.sinks() == ["sink"]
+    assert g.producers("sca*/y") == [("scale", "y")]
+
+
+def test_unknown_kind_names_the_operator():
+    assert "operator 'x': unknown operator kind 'warp_drive'" in problems(
+        graph(SOURCE, {"id": "x", "kind": "warp_drive"})
+    )
+
+
+def test_unimportable_custom_operator():
+    assert "cannot import module 'nope.mod'" in problems(graph(SOURCE, {"id": "x", "uses": "nope.mod:Op"}))
+
+
+def test_input_naming_an_undeclared_output():
+    bad = {**SCALE, "inputs": {"x": "src/nothing"}}
+    assert "operator 'scale': input 'x' = 'src/nothing' names an output no operator declares" in problems(
+        graph(SOURCE, bad)
+    )
+
+
+def test_unwired_and_unknown_ports():
+    text = problems(graph(SOURCE, {**SCALE, "inputs": {"y": "src/value"}}))
+    assert "unknown input port 'y'" in text and "input port 'x' is not wired" in text
+
+
+def test_cycle_is_reported_with_its_path():
+    a = {"id": "a", "uses": "tests.toy_ops:Scale", "inputs": {"x": "b/y"}}
+    b = {"id": "b", "uses": "tests.toy_ops:Scale", "inputs": {"x": "a/y"}}
+    text = problems(graph(SOURCE, a, b))
+    assert "cycle:" in text and "a -> b -> a" in text or "b -> a -> b" in text
+
+
+def test_duplicate_ids():
+    assert "duplicate operator id 'scale'" in problems(graph(SOURCE, SCALE, SCALE))
+
+
+def test_bad_parameter_is_checked_against_the_schema():
+    text = problems(graph(SOURCE, {**SCALE, "params": {"factor": "lots", "colour": 1}}))
+    assert "operator 'scale': parameter 'factor'" in text and "parameter 'colour'" in text
+
+
+def test_replicas_below_one():
+    assert "operator 'scale': replicas must be >= 1, got 0" in problems(graph(SOURCE, {**SCALE, "replicas": 0}))
+
+
+def test_unknown_keys_are_refused():
+    assert "operator 'scale': key 'replica'" in problems(graph(SOURCE, {**SCALE, "replica": 2}))
+    assert "key 'operatorz'" in problems({"operatorz": []})
+
+
+def test_set_overrides_are_validated():
+    g = validate_graph(graph(SOURCE, SCALE))
+    assert g.with_params({"scale": {"factor": 5}}).op("scale").params["factor"] == 5
+    with pytest.raises(GraphError, match="'ghost'"):
+        g.with_params({"ghost": {"factor": 5}})
+
+
+def test_graph_check_cli_exit_codes(tmp_path):
+    good = tmp_path / "good.yaml"
+    good.write_text(yaml.safe_dump(graph(SOURCE, SCALE, SINK)))
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(graph(SOURCE, {**SCALE, "replicas": 0}, {"id": "y", "kind": "warp_drive"})))
+    ok = run_umad("graph", "check", str(good))
+    assert ok.returncode == 0, ok.stderr
+    fail = run_umad("graph", "check", str(bad))
+    assert fail.returncode != 0
+    assert "replicas must be >= 1" in fail.stderr and "'warp_drive'" in fail.stderr
+
+
+def test_missing_file_and_bad_yaml(tmp_path):
+    with pytest.raises(GraphError, match="not found"):
+        load_graph(tmp_path / "none.yaml")
+    (tmp_path / "bad.yaml").write_text("operators: [")
+    with pytest.raises(GraphError, match="not valid YAML"):
+        load_graph(tmp_path / "bad.yaml")

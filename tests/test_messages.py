@@ -1,0 +1,90 @@
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from umad_common.messages import ALLOWED_DTYPES, Message, MessageError, decode, encode
+
+dtypes = st.sampled_from(sorted(ALLOWED_DTYPES)).map(np.dtype)
+arrays = dtypes.flatmap(lambda dt: hnp.arrays(dt, hnp.array_shapes(min_dims=0, max_dims=4, max_side=5)))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    run=st.text(max_size=20),
+    seq=st.integers(0, 2**40),
+    stamp=st.integers(-(2**62), 2**62),
+    meta=st.dictionaries(st.text(max_size=8), st.one_of(st.integers(-100, 100), st.text(max_size=8), st.booleans())),
+    arrs=st.dictionaries(st.text(min_size=1, max_size=8), arrays, max_size=4),
+)
+def test_round_trip(run, seq, stamp, meta, arrs):
+    msg = Message(run, seq, stamp, "producer", meta, arrs)
+    back = decode(encode(msg))
+    assert (back.run, back.seq, back.stamp_ns, back.producer, back.meta) == (run, seq, stamp, "producer", meta)
+    assert set(back.arrays) == set(arrs)
+    for name, arr in arrs.items():
+        assert back.arrays[name].dtype == arr.dtype and back.arrays[name].shape == arr.shape
+        np.testing.assert_array_equal(back.arrays[name], arr)
+
+
+def test_big_endian_arrays_travel_as_little_endian():
+    arr = np.arange(6, dtype=">f4").reshape(2, 3)
+    back = decode(encode(Message("r", 0, arrays={"a": arr})))
+    assert back.arrays["a"].dtype == np.dtype("<f4")
+    np.testing.assert_array_equal(back.arrays["a"], arr)
+
+
+def test_unsupported_dtype_is_refused_when_encoding():
+    with pytest.raises(MessageError, match="cannot be sent"):
+        encode(Message("r", 0, arrays={"a": np.array(["x"])}))
+
+
+def _raw(**overrides):
+    obj = {
+        "v": 1,
+        "run": "r",
+        "seq": 1,
+        "stamp_ns": 0,
+        "producer": "p",
+        "meta": {},
+        "arrays": {"a": {"dtype": "<f4", "shape": [2, 2], "data": b"\0" * 16}},
+    }
+    obj.update(overrides)
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+@pytest.mark.parametrize(
+    "payload, match",
+    [
+        (b"\xc1garbage", "not valid msgpack"),
+        (msgpack.packb([1, 2, 3]), "map at the top level"),
+        (_raw(v=2), "version 2"),
+        (_raw(seq=-1), "'seq'"),
+        (_raw(run=5), "'run'"),
+        (_raw(meta=[1]), "'meta'"),
+        (_raw(arrays={"a": {"dtype": "|O", "shape": [1], "data": b"\0" * 8}}), "dtype '\\|O' is not allowed"),
+        (_raw(arrays={"a": {"dtype": "<f4", "shape": [3, 3], "data": b"\0" * 16}}), "needs 36 bytes, got 16"),
+        (_raw(arrays={"a": {"dtype": "<f4", "shape": [2**30, 2**30], "data": b""}}), "needs"),
+        (_raw(arrays={"a": {"dtype": "<f4", "shape": [-1], "data": b""}}), "shape"),
+        (_raw(arrays={"a": {"dtype": "<f4", "shape": [1] * 9, "data": b"\0" * 4}}), "shape"),
+    ],
+)
+def test_malformed_payloads_raise_one_clear_error(payload, match):
+    with pytest.raises(MessageError, match=match):
+        decode(payload)
+
+
+def test_size_cap_stops_memory_bombs_before_parsing():
+    with pytest.raises(MessageError, match="exceeds"):
+        decode(b"\0" * 1001, max_bytes=1000)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=200))
+def test_random_bytes_never_escape_as_other_errors(data):
+    try:
+        decode(data)
+    except MessageError:
+        pass

@@ -1,0 +1,215 @@
+"""Fusion and mask refinement: arithmetic on hand-made maps and masks whose answer is known, plus
+the fusion and mask_refiner operators over a short stream (metrics joining and leaving, weight
+changes applying from the next frame)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from operators.fusion import Fusion
+from operators.mask_refiner import MaskRefiner
+from umad_common.messages import Message
+from umad_common.operator import Frame
+from umad_common.refine import fuse, mask_scores, refine, resize_nearest
+
+FUSED = np.array(
+    [
+        [0.0, 0.2, 0.4, 0.6],
+        [0.8, 1.0, 0.1, 0.3],
+    ],
+    dtype=np.float32,
+)
+
+
+def masks_of(*boxes: list[list[int]]) -> np.ndarray:
+    return np.array(boxes, dtype=bool)
+
+
+LEFT = [[1, 1, 0, 0], [1, 1, 0, 0]]  # mean 0.5, max 1.0
+RIGHT = [[0, 0, 1, 1], [0, 0, 1, 1]]  # mean 0.35, max 0.6
+MIDDLE = [[0, 1, 1, 0], [0, 1, 1, 0]]  # mean 0.425, max 1.0
+CORNER = [[0, 0, 0, 1], [0, 0, 0, 0]]  # mean 0.6, max 0.6
+
+
+def test_mean_writes_each_masks_mean_to_its_pixels():
+    out = refine(FUSED, masks_of(LEFT, RIGHT), mode="mean")
+    np.testing.assert_allclose(out, [[0.5, 0.5, 0.35, 0.35], [0.5, 0.5, 0.35, 0.35]], rtol=1e-6)
+    assert out.dtype == np.float32
+
+
+def test_max_writes_each_masks_max_to_its_pixels():
+    out = refine(FUSED, masks_of(LEFT, RIGHT), mode="max")
+    np.testing.assert_allclose(out, [[1.0, 1.0, 0.6, 0.6], [1.0, 1.0, 0.6, 0.6]], rtol=1e-6)
+
+
+def test_single_keeps_only_the_highest_mean_mask():
+    out = refine(FUSED, masks_of(RIGHT, LEFT, MIDDLE), mode="single", uncovered="zero")
+    np.testing.assert_allclose(out, [[0.5, 0.5, 0.0, 0.0], [0.5, 0.5, 0.0, 0.0]], rtol=1e-6)
+    kept = refine(FUSED, masks_of(RIGHT, LEFT), mode="single", uncovered="keep")
+    np.testing.assert_allclose(kept, [[0.5, 0.5, 0.4, 0.6], [0.5, 0.5, 0.1, 0.3]], rtol=1e-6)
+
+
+def test_none_returns_the_fused_map():
+    out = refine(FUSED, masks_of(LEFT), mode="none", uncovered="zero")
+    np.testing.assert_array_equal(out, FUSED)
+    assert out is not FUSED
+
+
+def test_overlap_highest_score_wins_in_either_order():
+    expected = [[0.5, 0.5, 0.425, 0.6], [0.5, 0.5, 0.425, 0.0]]  # LEFT beats MIDDLE, CORNER beats MIDDLE
+    for order in ([LEFT, MIDDLE, CORNER], [CORNER, MIDDLE, LEFT], [MIDDLE, CORNER, LEFT]):
+        out = refine(FUSED, masks_of(*order), mode="mean", uncovered="zero")
+        np.testing.assert_allclose(out, expected, rtol=1e-6)
+
+
+def test_uncovered_pixels_keep_or_zero():
+    keep = refine(FUSED, masks_of(CORNER), mode="mean", uncovered="keep")
+    expected_keep = FUSED.copy()
+    expected_keep[0, 3] = 0.6
+    np.testing.assert_allclose(keep, expected_keep, rtol=1e-6)
+    zero = refine(FUSED, masks_of(CORNER), mode="max", uncovered="zero")
+    np.testing.assert_allclose(zero, [[0, 0, 0, 0.6], [0, 0, 0, 0]], rtol=1e-6)
+
+
+def test_no_masks_and_empty_masks_leave_every_pixel_uncovered():
+    no_masks = np.zeros((0, 2, 4), dtype=bool)
+    np.testing.assert_array_equal(refine(FUSED, no_masks, uncovered="keep"), FUSED)
+    np.testing.assert_array_equal(refine(FUSED, no_masks, mode="single", uncovered="zero"), np.zeros_like(FUSED))
+    empty = np.zeros((1, 2, 4), dtype=bool)
+    for mode in ("mean", "max", "single"):
+        np.testing.assert_array_equal(refine(FUSED, empty, mode=mode, uncovered="keep"), FUSED)
+
+
+def test_mask_scores_match_a_per_mask_loop_on_random_overlapping_masks():
+    rng = np.random.default_rng(3)
+    fused = rng.random((17, 23)).astype(np.float32)
+    masks = rng.random((40, 17, 23)) < 0.2
+    masks[5] = False
+    means, maxes = mask_scores(fused, masks, "mean"), mask_scores(fused, masks, "max")
+    for k in range(len(masks)):
+        if masks[k].any():
+            assert means[k] == pytest.approx(fused[masks[k]].astype(np.float64).mean(), rel=1e-12)
+            assert maxes[k] == fused[masks[k]].max()
+        else:
+            assert means[k] == -np.inf and maxes[k] == -np.inf
+    out = refine(fused, masks, mode="mean", uncovered="zero")
+    per_pixel_best = np.where(masks, means[:, None, None], 0.0).max(axis=0)
+    np.testing.assert_allclose(out, per_pixel_best, rtol=1e-6)
+
+
+def test_refine_rejects_bad_arguments():
+    with pytest.raises(ValueError, match="mode"):
+        refine(FUSED, masks_of(LEFT), mode="median")
+    with pytest.raises(ValueError, match="uncovered"):
+        refine(FUSED, masks_of(LEFT), uncovered="nan")
+    with pytest.raises(ValueError, match=r"expected \(K, 2, 4\)"):
+        refine(FUSED, np.zeros((1, 3, 4), dtype=bool))
+
+
+def test_fuse_is_the_weighted_mean_of_the_maps_present():
+    a, b = np.full((2, 3), 0.2, np.float32), np.full((2, 3), 0.8, np.float32)
+    out = fuse({"abs": a, "ssim": b}, {"abs": 0.25, "ssim": 0.75, "td": 1.0})  # td absent: ignored
+    np.testing.assert_allclose(out, 0.65, rtol=1e-6)
+    assert out.dtype == np.float32 and out.shape == (2, 3)
+    unweighted = fuse({"abs": a, "mnad": b}, {"abs": 0.5})  # mnad has no weight: not fused
+    np.testing.assert_allclose(unweighted, 0.2, rtol=1e-6)
+    np.testing.assert_array_equal(fuse({"abs": a}, {"abs": 0.0}), np.zeros((2, 3), np.float32))
+
+
+def test_fuse_resizes_to_the_largest_map_and_ignores_arrival_order():
+    big = np.linspace(0, 1, 8 * 12, dtype=np.float32).reshape(8, 12)
+    small = np.full((4, 6), 0.5, np.float32)
+    one = fuse({"abs": big, "mnad": small}, {"abs": 0.5, "mnad": 0.5})
+    other = fuse({"mnad": small, "abs": big}, {"mnad": 0.5, "abs": 0.5})
+    assert one.shape == (8, 12)
+    np.testing.assert_array_equal(one, other)
+    np.testing.assert_allclose(one, (big + 0.5) / 2, rtol=1e-6)
+
+
+def test_resize_nearest_matches_opencv_exact_nearest():
+    cv2 = pytest.importorskip("cv2")
+    labels = np.arange(7 * 11, dtype=np.int32).reshape(7, 11)
+    for shape in ((3, 5), (14, 22), (7, 4), (10, 11)):
+        expected = cv2.resize(labels, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST_EXACT)
+        np.testing.assert_array_equal(resize_nearest(labels, shape), expected)
+
+
+def map_msg(seq: int, metric: str | None, value: float, shape=(2, 3)) -> Message:
+    meta = {"metric": metric} if metric else {}
+    return Message("drive", seq, meta=meta, arrays={"map": np.full(shape, value, np.float32)})
+
+
+def fusion_frame(seq: int, maps: dict[str, Message], partial: bool = False) -> Frame:
+    return Frame("drive", seq, 0, many={"maps": maps}, partial=partial)
+
+
+def test_fusion_stream_with_a_metric_joining_and_leaving():
+    op = Fusion({"weights": {"abs": 0.5, "ssim": 0.5}})
+    first = op.process(fusion_frame(0, {"diff_abs": map_msg(0, "abs", 0.2)}))["fused"]
+    np.testing.assert_allclose(first.arrays["map"], 0.2)
+    assert first.meta == {"metrics": ["abs"], "weights": {"abs": 0.5}, "ignored": [], "partial": False}
+    both = {"diff_abs": map_msg(1, "abs", 0.2), "diff_ssim": map_msg(1, "ssim", 0.6)}
+    joined = op.process(fusion_frame(1, both))["fused"]
+    np.testing.assert_allclose(joined.arrays["map"], 0.4, rtol=1e-6)
+    assert joined.meta["metrics"] == ["abs", "ssim"] and joined.meta["weights"] == {"abs": 0.5, "ssim": 0.5}
+    left = op.process(fusion_frame(2, {"diff_ssim": map_msg(2, "ssim", 0.6)}, partial=True))["fused"]
+    np.testing.assert_allclose(left.arrays["map"], 0.6, rtol=1e-6)
+    assert left.meta["metrics"] == ["ssim"] and left.meta["partial"] is True
+
+
+def test_fusion_weight_change_applies_from_the_next_frame():
+    op = Fusion({"weights": {"abs": 0.5, "ssim": 0.5}})
+    maps = {"diff_abs": map_msg(0, "abs", 0.0), "diff_ssim": map_msg(0, "ssim", 1.0)}
+    before = op.process(fusion_frame(0, maps))["fused"]
+    np.testing.assert_allclose(before.arrays["map"], 0.5, rtol=1e-6)
+    op.update_params(Fusion.validate_params({"weights": {"abs": 0.5, "ssim": 0.0}}))
+    after = op.process(fusion_frame(1, maps))["fused"]
+    np.testing.assert_allclose(after.arrays["map"], 0.0)
+    assert after.meta["metrics"] == ["abs"] and after.meta["ignored"] == ["ssim"]
+    assert after.meta["weights"] == {"abs": 0.5}
+
+
+def test_fusion_metric_falls_back_to_producer_id_and_defaults_cover_five_metrics():
+    op = Fusion()
+    assert op.params.weights == {"abs": 0.2, "mse": 0.2, "ssim": 0.2, "perceptual": 0.2, "temporal": 0.2}
+    out = op.process(fusion_frame(0, {"temporal": map_msg(0, None, 0.3), "mnad": map_msg(0, None, 0.9)}))["fused"]
+    np.testing.assert_allclose(out.arrays["map"], 0.3, rtol=1e-6)
+    assert out.meta["metrics"] == ["temporal"] and out.meta["ignored"] == ["mnad"]
+
+
+def test_fusion_rejects_bad_weights_and_inputs():
+    with pytest.raises(ValidationError, match="ssim"):
+        Fusion({"weights": {"ssim": 1.5}})
+    with pytest.raises(ValidationError):
+        Fusion({"weight": {"ssim": 0.5}})
+    op = Fusion()
+    with pytest.raises(ValueError, match="two producers report metric 'abs'"):
+        op.process(fusion_frame(0, {"a1": map_msg(0, "abs", 0.1), "a2": map_msg(0, "abs", 0.2)}))
+    with pytest.raises(ValueError, match="no difference maps"):
+        op.process(fusion_frame(0, {}))
+
+
+def test_mask_refiner_operator_resizes_masks_nearest():
+    fused = np.zeros((4, 8), np.float32)
+    fused[:2, :4] = 1.0
+    masks = np.zeros((2, 2, 4), dtype=bool)
+    masks[0, 0, :2] = True  # the top-left quarter at full size
+    masks[1, 1, :] = True  # the bottom half
+    frame = Frame(
+        "drive",
+        0,
+        0,
+        inputs={
+            "fused": Message("drive", 0, arrays={"map": fused}),
+            "masks": Message("drive", 0, arrays={"masks": masks}),
+        },
+    )
+    out = MaskRefiner({"mode": "mean", "uncovered": "zero"}).process(frame)["refined"]
+    expected = np.zeros((4, 8), np.float32)
+    expected[:2, :4] = 1.0
+    np.testing.assert_array_equal(out.arrays["map"], expected)
+    assert out.meta == {"mode": "mean", "uncovered": "zero", "masks": 2}
+    with pytest.raises(ValidationError):
+        MaskRefiner({"mode": "median"})

@@ -1,0 +1,206 @@
+"""The runtime with real processes on a real Zenoh hub on loopback, started as a user would."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+import yaml
+import zenoh
+
+from tests.conftest import run_umad, start_umad
+from umad_common.bus import open_client
+from umad_common.messages import decode
+from replay.log import LogError, read_log
+
+pytestmark = pytest.mark.slow
+
+
+def toy_graph(tmp_path: Path, hub: str, frames=30, delay=0.0, replicas=2, window=4) -> Path:
+    data = {
+        "name": "toy",
+        "hub": hub,
+        "operators": [
+            {
+                "id": "source",
+                "uses": "tests.toy_ops:CounterSource",
+                "params": {"frames": frames, "runs": 2, "window": window},
+            },
+            {
+                "id": "double",
+                "uses": "tests.toy_ops:Scale",
+                "inputs": {"x": "source/value"},
+                "replicas": replicas,
+                "params": {"delay_s": delay},
+            },
+            {"id": "triple", "uses": "tests.toy_ops:Scale", "inputs": {"x": "source/value"}, "params": {"factor": 3}},
+            {
+                "id": "sink",
+                "uses": "tests.toy_ops:JoinSink",
+                "inputs": {"a": "source/value", "b": "*le/y"},
+                "params": {"log": str(tmp_path / "sink.jsonl")},
+            },
+        ],
+    }
+    path = tmp_path / "graph.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def sink_lines(tmp_path: Path) -> list[dict]:
+    return [json.loads(line) for line in (tmp_path / "sink.jsonl").read_text().splitlines()]
+
+
+def assert_exactly_once(tmp_path: Path, frames: int) -> None:
+    lines = sink_lines(tmp_path)
+    seen = Counter((x["run"], x["seq"]) for x in lines if "seq" in x)
+    assert sorted(seen) == [(f"run{r}", s) for r in range(2) for s in range(frames)]
+    assert set(seen.values()) == {1}, [k for k, v in seen.items() if v > 1]
+    for x in lines:
+        if "seq" in x:
+            base = x["seq"] + 1000 * int(x["run"][3:])
+            assert x["total"] == base * 6 and x["producers"] == ["double", "triple"]
+    assert [x["run"] for x in lines if x.get("end")] == ["run0", "run1"]
+
+
+def zenoh_segments() -> set[str]:
+    return {p.name for p in Path("/dev/shm").glob("*.zenoh")} if Path("/dev/shm").is_dir() else set()
+
+
+def test_toy_graph_delivers_every_frame_exactly_once(tmp_path, hub_endpoint):
+    before = zenoh_segments()
+    result = run_umad("launch", str(toy_graph(tmp_path, hub_endpoint)), timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert_exactly_once(tmp_path, 30)
+    assert "[double.0]" in result.stdout and "[sink.0]" in result.stdout  # log lines carry the replica id
+    assert zenoh_segments() <= before
+
+
+def test_sigkill_of_a_replica_loses_and_duplicates_nothing(tmp_path, hub_endpoint):
+    graph = toy_graph(tmp_path, hub_endpoint, frames=60, delay=0.03)
+    proc = start_umad("launch", str(graph))
+    victim = None
+    deadline = time.monotonic() + 60
+    while victim is None and time.monotonic() < deadline:
+        out = subprocess.run(
+            ["pgrep", "-f", "--", f"--graph {graph} --op double --replica 1"], capture_output=True, text=True
+        )
+        if out.stdout.strip() and (tmp_path / "sink.jsonl").exists() and len(sink_lines(tmp_path)) > 10:
+            victim = int(out.stdout.split()[0])
+        time.sleep(0.05)
+    assert victim, "replica never started"
+    os.kill(victim, signal.SIGKILL)
+    out, _ = proc.communicate(timeout=180)
+    assert proc.returncode == 0, out
+    assert "restart 1/3" in out
+    assert_exactly_once(tmp_path, 60)
+
+
+def test_malformed_payloads_are_counted_and_the_operator_goes_on(tmp_path, hub_endpoint):
+    graph = toy_graph(tmp_path, hub_endpoint, frames=40, delay=0.05, replicas=1)
+    proc = start_umad("launch", str(graph))
+    stats: dict[str, dict] = {}
+    session = open_client(hub_endpoint)
+    try:
+        sub = session.declare_subscriber(
+            "umad/toy/_stats/**", lambda s: stats.update({str(s.key_expr): json.loads(s.payload.to_bytes())})
+        )
+        deadline = time.monotonic() + 60
+        while "umad/toy/_stats/triple/r0" not in stats and time.monotonic() < deadline:
+            time.sleep(0.1)
+        pub = session.declare_publisher("umad/toy/source/value", congestion_control=zenoh.CongestionControl.BLOCK)
+        for payload in (b"garbage", b"\x80", b"\x81\xa1v\x07"):
+            pub.put(payload)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not all(
+            stats.get(f"umad/toy/_stats/{op}/r0", {}).get("bad_messages", 0) >= 3 for op in ("triple", "sink")
+        ):
+            time.sleep(0.1)
+        assert stats["umad/toy/_stats/triple/r0"]["bad_messages"] == 3
+        assert stats["umad/toy/_stats/sink/r0"]["bad_messages"] == 3
+        sub.undeclare()
+    finally:
+        session.close()
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0, out
+    assert_exactly_once(tmp_path, 40)
+
+
+def test_frame_that_raises_is_logged_counted_and_the_stream_goes_on(tmp_path, hub_endpoint):
+    graph = toy_graph(tmp_path, hub_endpoint, frames=10, replicas=1)
+    result = run_umad("launch", str(graph), "--set", "double.fail_on_seq=3", timeout=120)
+    assert result.returncode == 0, result.stdout
+    assert "frame run0#3 failed: asked to fail" in result.stdout
+    seqs = {(x["run"], x["seq"]) for x in sink_lines(tmp_path) if "seq" in x}
+    assert ("run0", 3) not in seqs and len(seqs) == 18
+
+
+def test_record_then_replay_gives_byte_identical_sink_outputs(tmp_path, hub_endpoint):
+    graph = toy_graph(tmp_path, hub_endpoint, frames=15)
+    first, second = tmp_path / "first.mcap", tmp_path / "second.mcap"
+    result = run_umad("launch", str(graph), "--record", str(first), timeout=120)
+    assert result.returncode == 0, result.stdout
+    result = run_umad("replay", str(first), "--graph", str(graph), "--record", str(second), timeout=120)
+    assert result.returncode == 0, result.stdout
+
+    def sink_payloads(path):
+        out = {}
+        for rec in read_log(path):
+            if rec.topic == "umad/toy/sink/total":
+                msg = decode(rec.data)
+                out.setdefault((msg.run, msg.seq), rec.data)
+        return out
+
+    a, b = sink_payloads(first), sink_payloads(second)
+    assert len(a) == 2 * 16 and a == b
+
+
+def test_truncated_log_says_how_many_messages_were_readable(tmp_path, hub_endpoint):
+    graph = toy_graph(tmp_path, hub_endpoint, frames=15)
+    log = tmp_path / "rec.mcap"
+    assert run_umad("launch", str(graph), "--record", str(log), timeout=120).returncode == 0
+    data = log.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(LogError, match=r"after \d+ readable messages") as info:
+        list(read_log(cut))
+    assert len(list(read_log(cut, allow_truncated=True))) == info.value.readable
+    result = run_umad("replay", str(cut), "--graph", str(graph))
+    assert result.returncode != 0 and "readable messages" in result.stderr and "--allow-truncated" in result.stderr
+
+
+def test_ctrl_c_stops_everything_and_leaves_no_process_or_segment(tmp_path, hub_endpoint):
+    before = zenoh_segments()
+    graph = toy_graph(tmp_path, hub_endpoint, frames=1000, delay=0.05)
+    proc = start_umad("launch", str(graph))
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()
+    deadline = time.monotonic() + 60
+    while not ((tmp_path / "sink.jsonl").exists() and sink_lines(tmp_path)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGINT)
+    proc.wait(timeout=60)
+    reader.join(timeout=5)
+    assert proc.returncode == 130
+    left = subprocess.run(["pgrep", "-f", "--", f"--graph {graph}"], capture_output=True, text=True).stdout
+    assert left.strip() == ""
+    assert zenoh_segments() <= before
+
+
+def test_operator_that_cannot_start_fails_the_graph_without_restarts(tmp_path, hub_endpoint):
+    graph = toy_graph(tmp_path, hub_endpoint)
+    data = yaml.safe_load(graph.read_text())
+    data["operators"][1]["params"]["delay_s"] = 0.0
+    data["operators"][1]["uses"] = "tests.toy_ops:Scale"
+    graph.write_text(yaml.safe_dump(data))
+    result = run_umad("launch", str(graph), "--set", "double.factor=oops", timeout=60)
+    assert result.returncode != 0
+    assert "parameter 'factor'" in result.stderr

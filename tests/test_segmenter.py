@@ -1,0 +1,190 @@
+"""The segmenter operator: output contract on frames that look like the built-in world's, ground
+truth masks from instance ids, and the `sam` method's errors at construction (main environment;
+the end-to-end SAM run is tests/test_sam.py)."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from operators.segmenter import Segmenter
+from umad_common.messages import Message
+from umad_common.operator import Context, Frame
+from umad_common.refine import resize_nearest
+from umad_common.segmentation import connected_regions, labels_to_masks
+
+H, W = 128, 192  # world model size
+FULL_H, FULL_W = 256, 384  # synthetic world render size
+SKY, ROAD, BUILDING, MARKING, CAR, ANOMALY = 1, 2, 3, 4, 5, 6
+
+
+def driving_scene(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A synthetic-world-like frame at render size: sky, buildings, road with lane marks, a car and
+    an anomaly (each object its own instance id). Returns rgb (H,W,3) float32, instance, semantic."""
+    rng = np.random.default_rng(seed)
+    rgb = np.zeros((FULL_H, FULL_W, 3), np.float32)
+    semantic = np.zeros((FULL_H, FULL_W), np.uint8)
+    instance = np.zeros((FULL_H, FULL_W), np.int32)
+    rgb[:110], semantic[:110] = (0.55, 0.7, 0.95), SKY
+    rgb[60:130, :120], semantic[60:130, :120] = (0.6, 0.5, 0.4), BUILDING
+    rgb[60:130, 280:], semantic[60:130, 280:] = (0.45, 0.45, 0.5), BUILDING
+    rgb[130:], semantic[130:] = (0.3, 0.3, 0.32), ROAD
+    rgb[135:256:12, 188:196], semantic[135:256:12, 188:196] = (0.95, 0.95, 0.9), MARKING
+    rgb[150:185, 60:130], semantic[150:185, 60:130], instance[150:185, 60:130] = (0.1, 0.2, 0.7), CAR, 3
+    rgb[170:200, 220:250], semantic[170:200, 220:250], instance[170:200, 220:250] = (0.9, 0.3, 0.1), ANOMALY, 8
+    rgb += rng.normal(0, 0.02, rgb.shape).astype(np.float32)
+    return np.clip(rgb, 0, 1), instance, semantic
+
+
+def scene_frame(seed: int = 0, with_truth: bool = True) -> Frame:
+    rgb, instance, semantic = driving_scene(seed)
+    target = rgb[::2, ::2].copy()  # (128, 192, 3): the world model's plain resize
+    inputs = {"frame": Message("drive", seed, arrays={"target": target})}
+    if with_truth:
+        inputs["truth"] = Message("drive", seed, arrays={"instance": instance, "semantic": semantic})
+    return Frame("drive", seed, 0, inputs=inputs)
+
+
+@pytest.mark.parametrize("method", ["gt", "felzenszwalb", "slic", "kmeans"])
+def test_output_contract(method):
+    op = Segmenter({"method": method})
+    for seed in (0, 1):
+        out = op.process(scene_frame(seed))["masks"]
+        masks = out.arrays["masks"]
+        assert masks.dtype == bool and masks.ndim == 3 and masks.shape[1:] == (H, W)
+        assert out.meta == {"method": method, "count": masks.shape[0]}
+        assert masks.shape[0] >= 2 and masks.any(axis=(1, 2)).all()
+        assert masks.sum(axis=0).max() == 1, "built-in methods tile the image: no pixel in two masks"
+
+
+@pytest.mark.parametrize("method", ["felzenszwalb", "slic", "kmeans"])
+def test_unsupervised_methods_need_no_truth_and_are_deterministic(method):
+    op = Segmenter({"method": method})
+    one = op.process(scene_frame(0, with_truth=False))["masks"].arrays["masks"]
+    two = op.process(scene_frame(0, with_truth=False))["masks"].arrays["masks"]
+    np.testing.assert_array_equal(one, two)
+
+
+def test_unsupervised_methods_separate_the_anomaly_from_the_road():
+    anomaly = resize_nearest(driving_scene()[1], (H, W)) == 8
+    for method in ("felzenszwalb", "slic", "kmeans"):
+        masks = Segmenter({"method": method}).process(scene_frame())["masks"].arrays["masks"]
+        purity = (masks & anomaly).sum(axis=(1, 2)) / masks.sum(axis=(1, 2))
+        covered = masks[purity >= 0.5].any(axis=0) & anomaly
+        assert covered.sum() >= 0.8 * anomaly.sum(), method
+
+
+def test_gt_masks_are_the_instance_ids_resized_nearest():
+    frame = scene_frame()
+    instance = resize_nearest(frame.inputs["truth"].arrays["instance"], (H, W))
+    masks = Segmenter({"method": "gt", "gt_stuff": False}).process(frame)["masks"].arrays["masks"]
+    expected = np.stack([instance == 3, instance == 8])  # largest first: the car, then the anomaly
+    np.testing.assert_array_equal(masks, expected)
+
+
+def test_gt_stuff_regions_tile_the_rest_by_semantic_class_and_connectivity():
+    frame = scene_frame()
+    instance = resize_nearest(frame.inputs["truth"].arrays["instance"], (H, W))
+    semantic = resize_nearest(frame.inputs["truth"].arrays["semantic"], (H, W))
+    masks = Segmenter({"method": "gt", "gt_stuff_min_area": 1}).process(frame)["masks"].arrays["masks"]
+    np.testing.assert_array_equal(masks[:2], np.stack([instance == 3, instance == 8]))
+    assert masks.sum(axis=0).max() == 1 and masks.any(axis=0).all()
+    for mask in masks[2:]:
+        assert len(np.unique(semantic[mask])) == 1 and (instance[mask] == 0).all()
+        assert connected_regions(np.where(mask, 1, -1)).max() == 0  # one 4-connected region
+    lane_marks = connected_regions(np.where(semantic == MARKING, 1, -1)).max() + 1
+    assert sum(1 for m in masks[2:] if (semantic[m] == MARKING).all()) == lane_marks == 11
+
+
+def test_labels_to_masks_drops_small_and_ignored_labels():
+    labels = np.array([[0, 0, 1], [2, 2, 2]])
+    masks = labels_to_masks(labels, min_area=2, ignore=0)
+    np.testing.assert_array_equal(masks, [labels == 2])
+    assert labels_to_masks(labels, min_area=9).shape == (0, 2, 3)
+
+
+def test_gt_without_truth_and_bad_targets_are_refused():
+    with pytest.raises(ValueError, match="needs input 'truth' with array 'instance'"):
+        Segmenter({"method": "gt"}).process(scene_frame(with_truth=False))
+    gray = Frame("drive", 0, 0, inputs={"frame": Message("drive", 0, arrays={"target": np.zeros((H, W))})})
+    with pytest.raises(ValueError, match=r"expected \(h, w, 3\)"):
+        Segmenter({"method": "slic"}).process(gray)
+    with pytest.raises(ValidationError):
+        Segmenter({"method": "watershed"})
+    with pytest.raises(ValidationError):
+        Segmenter({"slic_segments": 10})
+
+
+def test_sam_missing_checkpoint_fails_at_construction(tmp_path):
+    missing = tmp_path / "nowhere" / "sam_vit_b.pth"
+    with pytest.raises(FileNotFoundError, match=r"sam_vit_b\.pth.*sam_checkpoint"):
+        Segmenter({"method": "sam", "sam_checkpoint": str(missing)})
+
+
+def test_sam_relative_checkpoint_resolves_against_the_graph_folder(tmp_path):
+    with pytest.raises(FileNotFoundError, match=str(tmp_path / "weights" / "sam.pth")):
+        Segmenter({"method": "sam", "sam_checkpoint": "weights/sam.pth"}, Context(base_dir=tmp_path))
+
+
+def test_sam_without_checkpoint_parameter_fails_at_construction():
+    with pytest.raises(ValueError, match="sam_checkpoint"):
+        Segmenter({"method": "sam"})
+
+
+def test_sam_without_package_fails_at_construction(tmp_path, monkeypatch):
+    checkpoint = tmp_path / "sam.pth"
+    checkpoint.write_bytes(b"never read: the package is missing")
+    monkeypatch.setitem(sys.modules, "segment_anything", None)  # import fails as if not installed
+    with pytest.raises(ImportError, match=r"segment-anything.*sam_env\.sh"):
+        Segmenter({"method": "sam", "sam_checkpoint": str(checkpoint)})
+
+
+def test_switching_to_sam_with_a_missing_checkpoint_keeps_the_old_method(tmp_path):
+    op = Segmenter({"method": "slic"})
+    with pytest.raises(FileNotFoundError):
+        op.update_params(Segmenter.validate_params({"method": "sam", "sam_checkpoint": str(tmp_path / "x.pth")}))
+    assert op.params.method == "slic"
+    assert op.process(scene_frame())["masks"].meta["method"] == "slic"
+
+
+def test_kmeans_on_feature_net_features(tmp_path):
+    torch = pytest.importorskip("torch")
+    from umad_common.models.feature_net import FeatureNet, save_feature_net
+
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    weights = tmp_path / "features.safetensors"
+    save_feature_net(FeatureNet(), weights)
+    op = Segmenter({"method": "kmeans", "kmeans_features": "feature_net", "kmeans_feature_net": str(weights)})
+    masks = op.process(scene_frame())["masks"].arrays["masks"]
+    assert masks.dtype == bool and masks.shape[1:] == (H, W) and masks.shape[0] >= 2
+    assert masks.sum(axis=0).max() == 1
+
+
+def test_kmeans_feature_net_file_is_checked_at_construction(tmp_path):
+    with pytest.raises(ValueError, match="kmeans_feature_net"):
+        Segmenter({"method": "kmeans", "kmeans_features": "feature_net"})
+    with pytest.raises(ValueError, match="missing.json"):
+        Segmenter(
+            {"method": "kmeans", "kmeans_features": "feature_net", "kmeans_feature_net": str(tmp_path / "missing.st")}
+        )
+
+
+def test_quality_counts_anomaly_pixels_in_masks_at_least_half_anomaly():
+    from umad_common.segmentation_quality import frame_quality
+
+    anomaly = np.zeros((4, 6), np.uint8)
+    anomaly[0, :3] = 1  # object A: 3 px
+    anomaly[3, 4:] = 1  # object B: 2 px
+    anomaly[1, 5] = 255  # ignored: counts in no mask's area
+    masks = np.zeros((3, 4, 6), dtype=bool)
+    masks[0, :2, :3] = True  # 3 of 6 px anomaly: exactly half -> covers A
+    masks[1, 2:, 3:] = True  # 2 of 6 px anomaly: a third -> covers nothing
+    masks[2, 1, 4:] = True  # 0 anomaly, one ignored pixel
+    total, covered, best = frame_quality(masks, anomaly)
+    assert (total, covered) == (5, 3)
+    assert best == pytest.approx([3 / 6, 2 / 6])
+    assert frame_quality(masks[:0], anomaly) == (5, 0, [0.0, 0.0])

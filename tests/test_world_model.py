@@ -1,0 +1,215 @@
+"""World model: shapes, determinism, weight files, the predictor operator, one tiny training run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from operators.world_model import WorldModelPredictor
+from umad_common.messages import Message
+from umad_common.models.world_model import (
+    Observation,
+    State,
+    WeightsError,
+    WorldModel,
+    WorldModelConfig,
+    lidar_range_image,
+    load_world_model,
+    save_world_model,
+)
+from umad_common.operator import Frame
+
+torch.set_num_threads(1)
+
+TINY = dict(
+    image_height=32,
+    image_width=64,
+    image_channels=(4, 4, 8, 8, 8),
+    image_embed=16,
+    lidar_rows=32,
+    lidar_width=64,
+    lidar_channels=(4, 4, 8, 8, 8),
+    lidar_embed=8,
+    route_size=16,
+    route_channels=(4, 4, 4, 4),
+    route_embed=8,
+    deter_dim=16,
+    stoch_dim=4,
+    hidden_dim=16,
+)
+
+
+def tiny_model(seed: int = 0, **overrides) -> WorldModel:
+    torch.manual_seed(seed)
+    return WorldModel(WorldModelConfig(**{**TINY, **overrides})).eval()
+
+
+def random_observation(config: WorldModelConfig, b: int, t: int, seed: int = 1) -> tuple[Observation, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    obs = Observation(
+        rgb=torch.rand(b, t, 3, config.image_height, config.image_width, generator=g),
+        lidar=torch.rand(b, t, 4, config.lidar_rows, config.lidar_width, generator=g),
+        route=torch.rand(b, t, 1, config.route_size, config.route_size, generator=g),
+        speed=torch.rand(b, t, 1, generator=g),
+    )
+    return obs, torch.rand(b, t, 2, generator=g) * 2 - 1
+
+
+def test_observe_and_imagine_shapes():
+    model = tiny_model()
+    c = model.config
+    obs, actions = random_observation(c, b=2, t=5)
+    result = model.observe(obs, actions)
+    assert result.rgb.shape == (2, 5, 3, 32, 64)
+    assert result.lidar_range.shape == (2, 5, 1, 32, 64)
+    assert result.states.h.shape == (2, 5, c.deter_dim) and result.states.z.shape == (2, 5, c.stoch_dim)
+    assert result.prior_std.min() >= c.min_std and result.post_std.min() >= c.min_std
+    assert 0.0 <= result.rgb.min() and result.rgb.max() <= 1.0
+    last = State(result.states.h[:, -1], result.states.z[:, -1])
+    imagined = model.imagine(last, actions[:, :3], 3)
+    assert imagined.rgb.shape == (2, 3, 3, 32, 64)
+    assert imagined.states.h.shape == (2, 3, c.deter_dim)
+    with pytest.raises(ValueError, match="at least 4"):
+        model.imagine(last, actions[:, :3], 4)
+
+
+def test_config_rejects_image_size_not_divisible():
+    with pytest.raises(ValueError, match="divisible by 32"):
+        WorldModelConfig(image_height=100)
+
+
+def test_same_seed_same_model_and_samples():
+    a, b = tiny_model(seed=3), tiny_model(seed=3)
+    obs, actions = random_observation(a.config, b=1, t=4)
+    torch.manual_seed(7)
+    ra = a.observe(obs, actions, sample=True)
+    torch.manual_seed(7)
+    rb = b.observe(obs, actions, sample=True)
+    assert torch.equal(ra.rgb, rb.rgb)
+    assert not torch.equal(tiny_model(seed=4).observe(obs, actions).rgb, a.observe(obs, actions).rgb)
+
+
+def test_observe_in_chunks_equals_one_pass():
+    model = tiny_model()
+    obs, actions = random_observation(model.config, b=1, t=6)
+    whole = model.observe(obs, actions)
+    first = model.observe(Observation(*(x[:, :4] for x in obs)), actions[:, :4])
+    state = State(first.states.h[:, -1], first.states.z[:, -1])
+    second = model.observe(Observation(*(x[:, 4:] for x in obs)), actions[:, 4:], state=state)
+    assert torch.allclose(torch.cat([first.rgb, second.rgb], 1), whole.rgb, atol=1e-6)
+
+
+def test_lidar_projection_puts_points_where_expected():
+    config = WorldModelConfig(lidar_rows=64, lidar_width=256)
+    # stored as (x, -y, z, i): a point 10 m ahead at the horizon, one 10 m to the left (stored y = +10)
+    points = np.array([[10.0, 0.0, 0.0, 1.0], [0.0, 10.0, 0.0, 1.0], [20.0, 0.0, 0.0, 1.0]], np.float32)
+    image = lidar_range_image(points, config)
+    horizon_row = int(15.0 / 40.0 * 64)
+    assert image[3, horizon_row, 128] == pytest.approx(10.0 / 50.0)  # ahead: centre column, nearest wins
+    assert image[3, horizon_row, 64] == pytest.approx(10.0 / 50.0)  # left: a quarter turn to the left
+    assert image[0, horizon_row, 128] == pytest.approx(0.2) and image[1, horizon_row, 64] == pytest.approx(0.2)
+    assert np.count_nonzero(image[3]) == 2
+    assert lidar_range_image(None, config).shape == (4, 64, 256)
+
+
+def test_save_load_round_trip(tmp_path):
+    model = tiny_model(seed=5)
+    path = save_world_model(model, tmp_path / "wm", {"note": "x"})
+    assert path.name == "wm.safetensors" and (tmp_path / "wm.json").is_file()
+    loaded, record = load_world_model(tmp_path / "wm.safetensors")
+    assert record["note"] == "x" and loaded.config == model.config
+    obs, actions = random_observation(model.config, b=1, t=3)
+    assert torch.equal(loaded.observe(obs, actions).rgb, model.observe(obs, actions).rgb)
+
+
+def test_wrong_shape_weights_name_the_tensor(tmp_path):
+    save_world_model(tiny_model(), tmp_path / "wm")
+    meta = json.loads((tmp_path / "wm.json").read_text())
+    meta["config"]["deter_dim"] = 24
+    (tmp_path / "wm.json").write_text(json.dumps(meta))
+    with pytest.raises(WeightsError, match=r"tensor '[\w.]+' has shape \(\d+(, \d+)*\); expected \(\d+(, \d+)*\)"):
+        load_world_model(tmp_path / "wm")
+    with pytest.raises(WeightsError, match="not found"):
+        load_world_model(tmp_path / "missing")
+
+
+# ---------------------------------------------------------------------------------------------
+# The predictor operator
+
+
+def sensor_frame(run: str, seq: int, rng: np.random.Generator) -> Frame:
+    def msg(arrays):
+        return Message(run=run, seq=seq, arrays=arrays)
+
+    points = rng.normal(0, 10, (200, 4)).astype(np.float32)
+    ego = np.array([5.0, rng.uniform(0, 1), 0.0, rng.uniform(-0.3, 0.3)], np.float32)
+    return Frame(
+        run=run,
+        seq=seq,
+        stamp_ns=seq,
+        inputs={
+            "camera": msg({"rgb": rng.integers(0, 256, (48, 80, 3), dtype=np.uint8)}),
+            "lidar": msg({"points": points}),
+            "ego": msg({"ego": ego}),
+            "route": msg({"route": rng.integers(0, 2, (192, 192), dtype=np.uint8) * 255}),
+        },
+    )
+
+
+@pytest.fixture
+def weights(tmp_path):
+    save_world_model(tiny_model(seed=2), tmp_path / "wm")
+    return tmp_path / "wm.safetensors"
+
+
+def test_predictor_outputs_and_predictions_made_earlier(weights):
+    op = WorldModelPredictor({"model": str(weights), "horizon": 3})
+    frames = [sensor_frame("run_a", seq, np.random.default_rng(seq)) for seq in range(5)]
+    outputs = [op.process(f)["frame"].arrays for f in frames]
+    out = outputs[4]
+    assert (
+        out["target"].shape == (32, 64, 3)
+        and out["recon"].shape == (32, 64, 3)
+        and out["preds"].shape == (3, 32, 64, 3)
+    )
+    assert [list(o["pred_valid"]) for o in outputs] == [[0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 1, 1], [1, 1, 1]]
+    assert not outputs[0]["preds"].any()
+
+    # independent reference: filter the sequence, then imagine from the state i steps back
+    model, _ = load_world_model(weights)
+    obs = [op.observation(f) for f in frames]
+    seq_obs = Observation(*(torch.cat([o[0][k] for o in obs], 1) for k in range(4)))
+    taken = torch.from_numpy(np.stack([o[2] for o in obs]))[None]  # (1, T, 2) action after each frame
+    prev = torch.cat([torch.zeros(1, 1, 2), taken[:, :-1]], 1)
+    with torch.no_grad():
+        result = model.observe(seq_obs, prev)
+        assert np.allclose(out["recon"], result.rgb[0, 4].permute(1, 2, 0).numpy(), atol=1e-5)
+        for i in (1, 2, 3):
+            start = State(result.states.h[:, 4 - i], result.states.z[:, 4 - i])
+            expected = model.imagine(start, taken[:, 4 - i : 4], i).rgb[0, -1].permute(1, 2, 0).numpy()
+            assert np.allclose(out["preds"][i - 1], expected, atol=1e-5), f"x̂_(t|t-{i})"
+
+
+def test_predictor_resets_at_a_new_run_and_honours_stride(weights):
+    op = WorldModelPredictor({"model": str(weights), "horizon": 2, "stride": 2})
+    first = op.process(sensor_frame("run_a", 0, np.random.default_rng(0)))["frame"]
+    outs = [op.process(sensor_frame("run_a", s, np.random.default_rng(s)))["frame"] for s in range(1, 5)]
+    assert [o.meta["model_step"] for o in outs] == [False, True, False, True]
+    assert [list(o.arrays["pred_valid"]) for o in outs] == [[0, 0], [1, 0], [0, 0], [1, 1]]
+    again = op.process(sensor_frame("run_b", 0, np.random.default_rng(0)))["frame"]
+    assert np.array_equal(again.arrays["recon"], first.arrays["recon"]) and not again.arrays["pred_valid"].any()
+
+
+def test_predictor_fails_early_on_missing_or_mismatched_weights(tmp_path, weights):
+    with pytest.raises(WeightsError, match="not found"):
+        WorldModelPredictor({"model": str(tmp_path / "nothing.safetensors")})
+    meta = json.loads(weights.with_suffix(".json").read_text())
+    meta["config"]["stoch_dim"] = 6
+    weights.with_suffix(".json").write_text(json.dumps(meta))
+    with pytest.raises(WeightsError, match="expected"):
+        WorldModelPredictor({"model": str(weights)})
+    with pytest.raises(ValueError, match="horizon"):
+        WorldModelPredictor({"model": str(weights), "horizon": 0})

@@ -1,0 +1,165 @@
+"""Zenoh plumbing in one place: session configs, key names, shutdown signals, shared-memory hygiene.
+
+Topology: the launcher opens a router-mode session (the hub); every operator opens a client session
+to it with multicast scouting off, so a worker on another host only needs the hub's endpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+
+DEFAULT_HUB = "tcp/127.0.0.1:7447"
+SHM_DIR = Path("/dev/shm")
+log = logging.getLogger("umad.bus")
+
+
+@dataclass(frozen=True)
+class TlsConfig:
+    """Zenoh TLS settings: the hub listens on `tls/...` endpoints; clients verify its certificate."""
+
+    root_ca: str | None = None
+    cert: str | None = None
+    key: str | None = None
+
+
+def zenoh_config(
+    mode: str, listen: list[str] | None = None, connect: list[str] | None = None, tls: TlsConfig | None = None
+) -> zenoh.Config:
+    """The one place every Zenoh config is built."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+        # Clients keep retrying the hub, so a restarted hub is rejoined.
+        conf.insert_json5("connect/timeout_ms", "-1")
+    if tls is not None:
+        if tls.root_ca:
+            conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(tls.root_ca))
+        if tls.cert:
+            conf.insert_json5("transport/link/tls/listen_certificate", json.dumps(tls.cert))
+        if tls.key:
+            conf.insert_json5("transport/link/tls/listen_private_key", json.dumps(tls.key))
+    return conf
+
+
+def open_hub(endpoint: str = DEFAULT_HUB, tls: TlsConfig | None = None) -> zenoh.Session:
+    """A router-mode session listening on `endpoint`."""
+    return zenoh.open(zenoh_config("router", listen=[endpoint], tls=tls))
+
+
+def open_client(endpoint: str = DEFAULT_HUB, tls: TlsConfig | None = None) -> zenoh.Session:
+    """A client session connected to the hub at `endpoint`."""
+    return zenoh.open(zenoh_config("client", connect=[endpoint], tls=tls))
+
+
+class Keys:
+    """Key names of one graph: `umad/<graph>/<operator>/<output>` and the underscore-prefixed service keys."""
+
+    def __init__(self, graph: str):
+        self.root = f"umad/{graph}"
+
+    def data(self, op: str, output: str) -> str:
+        return f"{self.root}/{op}/{output}"
+
+    def pattern(self, source: str) -> str:
+        """A graph source `op/output` (shell wildcards allowed, e.g. `diff_*/map`) as a key expression."""
+        chunks = [c if c in ("*", "**") or "*" not in c else c.replace("*", "$*") for c in source.split("/")]
+        return f"{self.root}/" + "/".join(chunks)
+
+    def control(self, op: str) -> str:
+        return f"{self.root}/_ctl/{op}"
+
+    @property
+    def ack(self) -> str:
+        return f"{self.root}/_ack"
+
+    def live(self, op: str, replica: str) -> str:
+        return f"{self.root}/_live/{op}/{replica}"
+
+    @property
+    def live_all(self) -> str:
+        return f"{self.root}/_live/**"
+
+    def stats(self, op: str, replica: str) -> str:
+        return f"{self.root}/_stats/{op}/{replica}"
+
+    def parse_data(self, key: str) -> tuple[str, str]:
+        """`umad/<graph>/<op>/<output>` -> (op, output)."""
+        rest = key[len(self.root) + 1 :]
+        op, _, output = rest.partition("/")
+        return op, output
+
+    def parse_live(self, key: str) -> tuple[str, str]:
+        """`umad/<graph>/_live/<op>/<replica>` -> (op, replica)."""
+        parts = key.split("/")
+        return parts[-2], parts[-1]
+
+
+class ShutdownSignal:
+    """Turns SIGTERM/SIGINT into an event the main loop checks, so sessions are closed, not abandoned."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.signum: int | None = None
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, self._handle)
+
+    def _handle(self, signum, _frame) -> None:
+        self.signum = signum
+        self.event.set()
+
+    @property
+    def requested(self) -> bool:
+        return self.event.is_set()
+
+
+def _mapped_shm_files() -> set[str]:
+    mapped: set[str] = set()
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            text = (proc / "maps").read_text()
+        except OSError:
+            continue
+        for line in text.splitlines():
+            if "/dev/shm/" in line:
+                mapped.add(line.rsplit("/", 1)[-1].replace(" (deleted)", ""))
+    return mapped
+
+
+def cleanup_stale_shm() -> list[str]:
+    """Unlink Zenoh shared-memory segments that no living process maps any more.
+
+    Zenoh's own exit cleanup does not run in every case (a SIGKILLed replica, the receiver side's
+    metadata segment), so the launcher sweeps after its children have exited. A segment still mapped
+    by any process is never touched.
+    """
+    if not SHM_DIR.is_dir():
+        return []
+    candidates = [p for p in SHM_DIR.glob("*.zenoh")]
+    if not candidates:
+        return []
+    mapped = _mapped_shm_files()
+    removed = []
+    for path in candidates:
+        if path.name not in mapped:
+            try:
+                os.unlink(path)
+                removed.append(path.name)
+            except OSError:
+                pass
+    if removed:
+        log.debug("removed %d stale shared-memory segments", len(removed))
+    return removed

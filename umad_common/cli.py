@@ -1,0 +1,67 @@
+"""The `umad` command: one verb per step of a user's work.
+
+Each verb lives in its own module under `umad_common.commands` with `add_arguments(parser)` and
+`run(args) -> int`; this file only maps verbs to modules, importing a module when its verb runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
+    ("launch",): ("umad_common.commands.launch", "start the graph: hub plus one process per operator replica"),
+    ("graph", "check"): ("umad_common.commands.graph_check", "validate a graph.yaml"),
+    ("op", "run"): ("umad_common.commands.op_run", "run one operator and join a running graph"),
+    ("op", "start"): ("umad_common.commands.op_control", "start an operator in a running graph"),
+    ("op", "stop"): ("umad_common.commands.op_control", "stop an operator in a running graph"),
+    ("set",): ("umad_common.commands.set_param", "change an operator parameter at runtime"),
+    ("replay",): ("umad_common.commands.replay", "republish a recorded MCAP log"),
+    ("generate", "synthetic"): ("umad_common.commands.generate", "write the built-in synthetic driving benchmark"),
+    ("train", "world-model"): ("umad_common.commands.train_world_model", "train the world model on normal drives"),
+    ("train", "features"): ("umad_common.commands.train_features", "train the label-free perceptual feature net"),
+    ("train", "mnad"): ("umad_common.commands.train_mnad", "train the MNAD baseline"),
+    ("calibrate",): ("umad_common.commands.calibrate", "fit per-metric normalisation on normal frames"),
+    ("eval",): ("umad_common.commands.evaluate", "run the full UMAD evaluation and write the report"),
+    ("sweep",): ("umad_common.commands.sweep", "compute the ablation table from a recorded log"),
+    ("bench",): ("umad_common.commands.bench", "side-by-side performance ratios"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="umad", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    top = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
+    groups: dict[str, argparse._SubParsersAction] = {}
+    for words, (module_name, help_text) in COMMANDS.items():
+        if len(words) == 1:
+            sub = top.add_parser(words[0], help=help_text, description=help_text)
+        else:
+            if words[0] not in groups:
+                group = top.add_parser(words[0], help=f"{words[0]} ...")
+                groups[words[0]] = group.add_subparsers(dest="subverb", required=True, metavar="WHAT")
+            sub = groups[words[0]].add_parser(words[1], help=help_text, description=help_text)
+        sub.set_defaults(_module=module_name, _words=words)
+        try:  # DEV-ONLY: tolerate verbs whose module is not written yet
+            importlib.import_module(module_name).add_arguments(sub)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:
+                raise
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    return int(importlib.import_module(args._module).run(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

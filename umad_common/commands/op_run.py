@@ -1,0 +1,30 @@
+"""`umad op run ID [--graph FILE] [--connect tcp/HOST:PORT]`: one operator joining a running graph."""
+
+from __future__ import annotations
+
+import sys
+
+from umad_common.commands.common import add_graph_argument, load_graph_or_exit
+from umad_common.graph import GraphError
+
+
+def add_arguments(parser):
+    parser.add_argument("id", help="operator id in the graph")
+    add_graph_argument(parser)
+    parser.add_argument("--connect", default=None, help="hub endpoint (default: the graph's `hub`)")
+    parser.add_argument("--replica", type=int, default=0, help="replica index (distinct per process of one operator)")
+    parser.add_argument("--set", action="append", default=[], metavar="OP.PARAM=VALUE")
+
+
+def run(args) -> int:
+    from umad_common.runtime import run_operator
+
+    graph = load_graph_or_exit(args.graph, args.set)
+    if graph is None:
+        return 1
+    try:
+        graph.op(args.id)
+    except GraphError as exc:
+        print(exc, file=sys.stderr)
+        return 1
+    return run_operator(graph, args.id, args.replica, args.connect)

@@ -1,0 +1,44 @@
+"""`umad train features DATA --out FILE`: train the label-free perceptual feature net on normal drives."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+log = logging.getLogger("umad.train.features")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "data", type=Path, help="benchmark folder (its normal/ drives are used) or a folder of normal scenarios"
+    )
+    parser.add_argument(
+        "--out", type=Path, required=True, help="weights file (.safetensors); its .json config is written beside it"
+    )
+    parser.add_argument("--epochs", type=int, default=4, help="passes over the loaded frames (default 4)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument(
+        "--frames", type=int, default=1200, help="at most this many frames, spread over all scenarios (default 1200)"
+    )
+    parser.add_argument("--batch-size", type=int, default=12, help="frames per step (default 12)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from umad_common.models.feature_net import save_feature_net
+    from umad_common.training.train_features import FeatureTrainingConfig, load_normal_rgb, train_feature_net
+
+    if args.out.suffix != ".safetensors":
+        raise SystemExit(f"--out {args.out}: expected a .safetensors file name")
+    if args.epochs < 1 or args.frames < 1 or args.batch_size < 2:
+        raise SystemExit("--epochs and --frames must be >= 1, --batch-size >= 2")
+    torch.set_num_threads(args.threads)
+    cfg = FeatureTrainingConfig(epochs=args.epochs, seed=args.seed, max_frames=args.frames, batch_size=args.batch_size)
+    frames = load_normal_rgb(args.data, cfg.size, cfg.max_frames)
+    model = train_feature_net(frames, cfg, data_name=str(args.data))
+    save_feature_net(model, args.out)
+    log.info("wrote %s (+ %s), %s", args.out, args.out.with_suffix(".json").name, model.config.training)
+    return 0

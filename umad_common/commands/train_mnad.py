@@ -1,0 +1,48 @@
+"""`umad train mnad DATA --out FILE`: train the MNAD baseline on normal drives."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+log = logging.getLogger("umad.train.mnad")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "data", type=Path, help="benchmark folder (its normal/ drives are used) or a folder of normal scenarios"
+    )
+    parser.add_argument(
+        "--out", type=Path, required=True, help="weights file (.safetensors); its .json config is written beside it"
+    )
+    parser.add_argument("--epochs", type=int, default=6, help="passes over the loaded frames (default 6)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument(
+        "--frames", type=int, default=1500, help="at most this many frames, spread over all scenarios (default 1500)"
+    )
+    parser.add_argument("--batch-size", type=int, default=8, help="frames per step (default 8)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from umad_common.models.mnad import MnadConfig, save_mnad
+    from umad_common.training.train_mnad import MnadTrainingConfig, load_normal_frames, train_mnad
+
+    if args.out.suffix != ".safetensors":
+        raise SystemExit(f"--out {args.out}: expected a .safetensors file name")
+    if args.epochs < 1 or args.frames < 2 or args.batch_size < 2:
+        raise SystemExit("--epochs must be >= 1, --frames and --batch-size >= 2")
+    torch.set_num_threads(args.threads)
+    train_cfg = MnadTrainingConfig(
+        epochs=args.epochs, seed=args.seed, batch_size=args.batch_size, max_frames=args.frames
+    )
+    model_cfg = MnadConfig()
+    frames = load_normal_frames(args.data, model_cfg, train_cfg.max_frames)
+    model, record = train_mnad(frames, train_cfg, model_cfg)
+    record["training"]["data"] = str(args.data)
+    save_mnad(model, args.out, record)
+    log.info("wrote %s (+ %s) after %s s", args.out, args.out.with_suffix(".json").name, record["training"]["seconds"])
+    return 0

@@ -1,0 +1,1 @@
+"""The built-in synthetic driving world (camera, lidar, actions, anomalies) in the AnoVox layout."""

@@ -1,0 +1,89 @@
+"""Difference metrics (raw disagreement maps between the camera and the world model's picture of
+it) and their normalisation to [0, 1]. Formulas: ARCHITECTURE.md, "The method, per frame t".
+
+    metric = build_metric("ssim", MetricOptions())
+    raw = metric(target, recon, preds, pred_valid)      # (h, w) float32
+    score = minmax(raw)                                   # or calibrated(raw, q)
+
+A metric not in `METRICS` loads by import path: `build_metric("mypkg.mod:MyDifference", ...)`,
+where `MyDifference` subclasses `DifferenceMetric`.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from umad_common.differences.metrics import (
+    AbsDifference,
+    DifferenceInputError,
+    DifferenceMetric,
+    MetricOptions,
+    MseDifference,
+    SsimDifference,
+    TemporalDifference,
+    validate_frame,
+)
+from umad_common.differences.normalization import (
+    Calibration,
+    CalibrationError,
+    CalibrationFitter,
+    calibrated,
+    load_calibration,
+    minmax,
+)
+from umad_common.differences.perceptual import PerceptualDifference
+
+METRICS: dict[str, type[DifferenceMetric]] = {
+    cls.name: cls for cls in (AbsDifference, MseDifference, SsimDifference, PerceptualDifference, TemporalDifference)
+}
+
+
+class UnknownMetricError(LookupError):
+    """A metric name that is neither registered nor a loadable `package.module:Class` path."""
+
+
+def metric_class(name: str) -> type[DifferenceMetric]:
+    """The class for a registered name or a `package.module:ClassName` import path."""
+    if name in METRICS:
+        return METRICS[name]
+    module_name, _, attr = name.partition(":")
+    if not attr:
+        raise UnknownMetricError(
+            f"unknown metric {name!r}; expected one of {sorted(METRICS)} or `package.module:ClassName`"
+        )
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise UnknownMetricError(f"cannot import module {module_name!r} for metric {name!r}: {exc}") from None
+    cls = getattr(module, attr, None)
+    if not (isinstance(cls, type) and issubclass(cls, DifferenceMetric)):
+        raise UnknownMetricError(f"metric {name!r}: expected a DifferenceMetric subclass, got {cls!r}")
+    return cls
+
+
+def build_metric(name: str, options: MetricOptions | None = None) -> DifferenceMetric:
+    """Construct a metric by name or import path (weights load here, so bad files fail early)."""
+    return metric_class(name).from_options(options or MetricOptions())
+
+
+__all__ = [
+    "METRICS",
+    "AbsDifference",
+    "Calibration",
+    "CalibrationError",
+    "CalibrationFitter",
+    "DifferenceInputError",
+    "DifferenceMetric",
+    "MetricOptions",
+    "MseDifference",
+    "PerceptualDifference",
+    "SsimDifference",
+    "TemporalDifference",
+    "UnknownMetricError",
+    "build_metric",
+    "calibrated",
+    "load_calibration",
+    "metric_class",
+    "minmax",
+    "validate_frame",
+]

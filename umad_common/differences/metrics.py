@@ -1,0 +1,200 @@
+"""The pixel difference metrics of UMAD: one small class per formula (ARCHITECTURE.md, "The method").
+
+Every metric turns one world-model frame (the camera image x, the reconstruction x̂_t and the past
+predictions x̂_{t|t-i}) into a raw (h, w) float32 disagreement map, larger = more unexpected.
+Normalisation to [0, 1] is a separate step (`umad_common.differences.normalization`).
+
+A new metric is one subclass of `DifferenceMetric` with a `compute` method; register it in
+`umad_common.differences.METRICS` or name it by import path (`metric: mypkg.mod:MyDifference`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar, NoReturn
+
+import numpy as np
+from scipy.ndimage import correlate1d
+
+
+class DifferenceInputError(ValueError):
+    """A frame array handed to a difference metric has the wrong dtype or shape."""
+
+
+@dataclass(frozen=True)
+class MetricOptions:
+    """What a metric may need beyond the frame: weight files (already resolved to absolute paths)."""
+
+    vgg_weights: Path | None = None
+    features: Path | None = None
+
+
+def validate_frame(target: np.ndarray, recon: np.ndarray, preds: np.ndarray, pred_valid: np.ndarray) -> tuple[int, int]:
+    """Check the world model's frame arrays against the `frame` contract; return (h, w).
+
+    Raises:
+        DifferenceInputError: naming the array, what was expected and what it got.
+    """
+
+    def fail(name: str, expected: str, arr: Any) -> NoReturn:
+        got = f"{arr.dtype} {tuple(arr.shape)}" if isinstance(arr, np.ndarray) else type(arr).__name__
+        raise DifferenceInputError(f"{name}: expected {expected}, got {got}")
+
+    if not (
+        isinstance(target, np.ndarray) and target.dtype == np.float32 and target.ndim == 3 and target.shape[2] == 3
+    ):
+        fail("target", "float32 array of shape (h, w, 3)", target)
+    h, w = target.shape[:2]
+    if not (isinstance(recon, np.ndarray) and recon.dtype == np.float32 and recon.shape == (h, w, 3)):
+        fail("recon", f"float32 array of shape ({h}, {w}, 3) like target", recon)
+    if not (
+        isinstance(preds, np.ndarray) and preds.dtype == np.float32 and preds.ndim == 4 and preds.shape[1:] == (h, w, 3)
+    ):
+        fail("preds", f"float32 array of shape (n, {h}, {w}, 3)", preds)
+    n = preds.shape[0]
+    if not (isinstance(pred_valid, np.ndarray) and pred_valid.dtype == np.uint8 and pred_valid.shape == (n,)):
+        fail("pred_valid", f"uint8 array of shape ({n},) like preds' first axis", pred_valid)
+    return h, w
+
+
+class DifferenceMetric:
+    """Base class: a raw per-pixel disagreement map from one world-model frame.
+
+    Class attributes:
+        name: the registry name (`metric:` in graph.yaml) and the default calibration key.
+        needs_predictions: the map is only meaningful when some `pred_valid` is 1 (calibration
+            skips frames without predictions for such a metric).
+    """
+
+    name: ClassVar[str] = ""
+    needs_predictions: ClassVar[bool] = False
+
+    @classmethod
+    def from_options(cls, options: MetricOptions) -> DifferenceMetric:
+        """Build the metric; metrics that load weights override this and fail early on bad files."""
+        return cls()
+
+    @property
+    def calibration_key(self) -> str:
+        """Which entry of a calibration file holds this metric's scale."""
+        return self.name or type(self).__name__
+
+    def compute(self, target: np.ndarray, recon: np.ndarray, preds: np.ndarray, pred_valid: np.ndarray) -> np.ndarray:
+        """Validated inputs in, (h, w) float32 raw map out."""
+        raise NotImplementedError
+
+    def notes(self, pred_valid: np.ndarray) -> dict[str, Any]:
+        """Extra metadata for this frame's output message (e.g. how many predictions were used)."""
+        return {}
+
+    def __call__(self, target: np.ndarray, recon: np.ndarray, preds: np.ndarray, pred_valid: np.ndarray) -> np.ndarray:
+        """Validate the frame arrays, then compute the map."""
+        h, w = validate_frame(target, recon, preds, pred_valid)
+        out = np.asarray(self.compute(target, recon, preds, pred_valid), dtype=np.float32)
+        if out.shape != (h, w):
+            raise DifferenceInputError(f"{type(self).__name__}.compute: expected a ({h}, {w}) map, got {out.shape}")
+        return out
+
+
+def abs_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Δ_ABS: per pixel, mean over r, g, b of |a - b|; (h, w, 3) x2 -> (h, w) float32."""
+    return np.abs(a - b).mean(axis=-1, dtype=np.float32)
+
+
+class AbsDifference(DifferenceMetric):
+    """Δ_ABS(x, x̂_t): mean absolute colour error per pixel."""
+
+    name = "abs"
+
+    def compute(self, target, recon, preds, pred_valid):
+        return abs_map(target, recon)
+
+
+class MseDifference(DifferenceMetric):
+    """Δ_MSE(x, x̂_t): mean squared colour error per pixel."""
+
+    name = "mse"
+
+    def compute(self, target, recon, preds, pred_valid):
+        diff = target - recon
+        return (diff * diff).mean(axis=-1, dtype=np.float32)
+
+
+def gaussian_kernel_1d(sigma: float, radius: int) -> np.ndarray:
+    """The normalised 1-D Gaussian of scipy.ndimage.gaussian_filter1d (taps -radius..radius)."""
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    return k / k.sum()
+
+
+class SsimDifference(DifferenceMetric):
+    """Δ_SSIM = 1 - SSIM map (Wang et al. 2004), per channel then averaged over r, g, b.
+
+    Gaussian window of 11 taps (sigma 1.5, truncated at 3.5 sigma), population covariances,
+    κ1 = (0.01 L)², κ2 = (0.03 L)² with data range L = 1; edges mirrored (`dcba|abcd`) as
+    scikit-image does, so the map equals
+    `1 - structural_similarity(..., gaussian_weights=True, full=True)[1].mean(-1)`.
+    All five local moments of all three channels are filtered at once by one separable pass.
+    """
+
+    name = "ssim"
+    sigma: ClassVar[float] = 1.5
+    truncate: ClassVar[float] = 3.5
+    data_range: ClassVar[float] = 1.0
+
+    def __init__(self) -> None:
+        self.radius = int(self.truncate * self.sigma + 0.5)  # 5 -> 11 taps
+        self.kernel = gaussian_kernel_1d(self.sigma, self.radius)
+        self.c1 = (0.01 * self.data_range) ** 2
+        self.c2 = (0.03 * self.data_range) ** 2
+
+    def _blur(self, stack: np.ndarray) -> np.ndarray:
+        """Gaussian-filter every (h, w) plane of a (k, h, w) stack; scipy's `reflect` = mirrored edges."""
+        rows = correlate1d(stack, self.kernel, axis=1, mode="reflect")
+        return correlate1d(rows, self.kernel, axis=2, mode="reflect")
+
+    def ssim_map(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """SSIM per pixel, averaged over channels: (h, w, 3) x2 -> (h, w) float32.
+
+        Moments are filtered in float64: in float32, `E[x²] - E[x]²` loses the variance of smooth
+        regions (sky, road) to cancellation, off by 1e-4 from the exact map.
+        """
+        x = a.transpose(2, 0, 1).astype(np.float64)  # (3, h, w)
+        y = b.transpose(2, 0, 1).astype(np.float64)
+        ux, uy, uxx, uyy, uxy = np.split(self._blur(np.concatenate([x, y, x * x, y * y, x * y])), 5)
+        vx, vy, vxy = uxx - ux * ux, uyy - uy * uy, uxy - ux * uy
+        num = (2 * ux * uy + self.c1) * (2 * vxy + self.c2)
+        den = (ux * ux + uy * uy + self.c1) * (vx + vy + self.c2)
+        return (num / den).mean(axis=0).astype(np.float32)
+
+    def compute(self, target, recon, preds, pred_valid):
+        h, w = target.shape[:2]
+        if min(h, w) < 2 * self.radius + 1:
+            raise DifferenceInputError(f"target: SSIM needs images of at least 11x11 pixels, got {h}x{w}")
+        return 1.0 - self.ssim_map(target, recon)
+
+
+class TemporalDifference(DifferenceMetric):
+    """Δ_TD = mean over the available past predictions i of Δ_ABS(x̂_{t|t-i}, x̂_t).
+
+    Rule at the start of a run: only predictions with `pred_valid[i-1] == 1` count, so frame 1 uses
+    one prediction, frame 2 two, ... up to n. Frame 0 has none: its map is all zeros (nothing was
+    predicted, so nothing is unexpected) and its metadata says `temporal_predictions: 0`.
+    """
+
+    name = "temporal"
+    needs_predictions = True
+
+    def compute(self, target, recon, preds, pred_valid):
+        valid = np.flatnonzero(pred_valid)
+        if valid.size == 0:
+            return np.zeros(target.shape[:2], dtype=np.float32)
+        return np.abs(preds[valid] - recon[None]).mean(axis=(0, 3), dtype=np.float32)
+
+    def notes(self, pred_valid: np.ndarray) -> dict[str, Any]:
+        used = int(np.count_nonzero(pred_valid))
+        notes: dict[str, Any] = {"temporal_predictions": used}
+        if used == 0:
+            notes["temporal_note"] = "no past prediction of this frame (run start): map is zeros"
+        return notes

@@ -1,0 +1,260 @@
+"""graph.yaml: which operators run, how their ports are wired, with which parameters.
+
+    name: umad                     # bus key prefix: umad/<name>/...
+    hub: tcp/127.0.0.1:7447        # where the launcher's router listens
+    operators:
+      - id: diff_ssim
+        kind: difference           # or `uses: mypkg.module:MyOperator`
+        inputs: {frame: world_model/frame}
+        params: {metric: ssim}
+        replicas: 2
+        python: .venv-sam/bin/python   # optional: run this operator in another environment
+
+`load_graph` checks everything it can before a process starts and raises GraphError listing every
+problem, each naming the operator id and key at fault.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from umad_common.bus import DEFAULT_HUB
+from umad_common.operator import Operator, Source, UnknownOperatorError, load_operator_class
+
+
+class GraphError(ValueError):
+    """graph.yaml is invalid; `problems` lists every culprit found."""
+
+    def __init__(self, problems: list[str]):
+        self.problems = problems
+        super().__init__("invalid graph:\n  - " + "\n  - ".join(problems))
+
+
+class TlsSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    root_ca: str | None = Field(None, description="CA certificate (PEM) that signed the hub's certificate")
+    cert: str | None = Field(None, description="hub certificate (PEM), used when listening on tls/...")
+    key: str | None = Field(None, description="hub private key (PEM)")
+
+
+class OperatorSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    id: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_\-]*$", description="unique name, used in bus keys")
+    kind: str | None = Field(None, description="built-in operator kind")
+    uses: str | None = Field(None, description="import path `package.module:Class` of a custom operator")
+    inputs: dict[str, str] = Field(default_factory=dict, description="port -> `operator/output` (wildcards allowed)")
+    params: dict[str, Any] = Field(default_factory=dict)
+    replicas: int = Field(1, description="processes sharing this operator's frames")
+    python: str | None = Field(None, description="interpreter of another environment to run this operator in")
+
+
+class GraphSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field("umad", pattern=r"^[A-Za-z0-9_\-]+$")
+    hub: str = DEFAULT_HUB
+    tls: TlsSpec | None = None
+    base_dir: str | None = Field(None, description="folder that relative paths in params resolve against (default: the graph file's)")
+    operators: list[OperatorSpec]
+
+
+@dataclass
+class Graph:
+    """A validated graph: the spec, each operator's class, and the wiring resolved."""
+
+    spec: GraphSpec
+    classes: dict[str, type[Operator]]
+    path: Path | None = None
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def base_dir(self) -> Path:
+        here = self.path.parent if self.path else Path.cwd()
+        return here / self.spec.base_dir if self.spec.base_dir else here
+
+    def op(self, op_id: str) -> OperatorSpec:
+        for spec in self.spec.operators:
+            if spec.id == op_id:
+                return spec
+        raise GraphError([f"no operator with id {op_id!r}; the graph has {[o.id for o in self.spec.operators]}"])
+
+    def producers(self, source: str) -> list[tuple[str, str]]:
+        """The `(op, output)` pairs a wiring source such as `diff_*/map` matches."""
+        op_pat, _, out_pat = source.partition("/")
+        return [
+            (spec.id, out)
+            for spec in self.spec.operators
+            if spec.id in self.classes
+            for out in self.classes[spec.id].outputs
+            if fnmatch.fnmatchcase(spec.id, op_pat) and fnmatch.fnmatchcase(out, out_pat)
+        ]
+
+    def consumers(self, op_id: str) -> list[str]:
+        return [
+            spec.id
+            for spec in self.spec.operators
+            if any(op == op_id for src in spec.inputs.values() for op, _ in self.producers(src))
+        ]
+
+    def sources(self) -> list[str]:
+        return [s.id for s in self.spec.operators if issubclass(self.classes[s.id], Source)]
+
+    def sinks(self) -> list[str]:
+        """Operators whose outputs nobody consumes: they acknowledge frames end to end."""
+        return [s.id for s in self.spec.operators if not issubclass(self.classes[s.id], Source) and not self.consumers(s.id)]
+
+    def with_params(self, overrides: dict[str, dict[str, Any]]) -> Graph:
+        """A copy with `{op_id: {param: value}}` merged in, validated again."""
+        data = self.spec.model_dump()
+        for op_id, params in overrides.items():
+            matches = [o for o in data["operators"] if o["id"] == op_id]
+            if not matches:
+                raise GraphError([f"--set names operator {op_id!r}, which is not in the graph"])
+            merge_params(matches[0]["params"], params)
+        return validate_graph(data, self.path)
+
+
+def merge_params(target: dict[str, Any], updates: dict[str, Any]) -> None:
+    """Merge `{"weights.ssim": 0.5}`-style dotted keys into a nested params dict."""
+    for dotted, value in updates.items():
+        node = target
+        *parents, leaf = dotted.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise GraphError([f"parameter {dotted!r}: {part!r} is not a mapping"])
+        node[leaf] = value
+
+
+def parse_assignment(text: str) -> tuple[str, str, Any]:
+    """`OP.PARAM=VALUE` (PARAM may be dotted, VALUE is YAML) -> (op, param, value)."""
+    key, sep, raw = text.partition("=")
+    op, dot, param = key.partition(".")
+    if not sep or not dot or not op or not param:
+        raise GraphError([f"{text!r}: expected OP.PARAM=VALUE, e.g. fusion.weights.ssim=0.5"])
+    return op, param, yaml.safe_load(raw)
+
+
+def load_graph(path: str | Path) -> Graph:
+    """Read and validate a graph file. Custom operators (`uses:`) are imported from PYTHONPATH and
+    from the graph file's folder."""
+    path = Path(path)
+    if str(path.resolve().parent) not in sys.path:
+        sys.path.append(str(path.resolve().parent))
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise GraphError([f"{path}: graph file not found"]) from None
+    except yaml.YAMLError as exc:
+        raise GraphError([f"{path}: not valid YAML ({exc})"]) from None
+    return validate_graph(data, path)
+
+
+def validate_graph(data: Any, path: Path | None = None) -> Graph:
+    where = f"{path}: " if path else ""
+    if not isinstance(data, dict):
+        raise GraphError([f"{where}expected a mapping with `operators:`, got {type(data).__name__}"])
+    try:
+        spec = GraphSpec.model_validate(data)
+    except ValidationError as exc:
+        raise GraphError([f"{where}{_describe(err, data)}" for err in exc.errors()]) from None
+
+    problems: list[str] = []
+    classes: dict[str, type[Operator]] = {}
+    seen: set[str] = set()
+    for op in spec.operators:
+        if op.id in seen:
+            problems.append(f"duplicate operator id {op.id!r}")
+        seen.add(op.id)
+        if op.replicas < 1:
+            problems.append(f"operator {op.id!r}: replicas must be >= 1, got {op.replicas}")
+        if (op.kind is None) == (op.uses is None):
+            problems.append(f"operator {op.id!r}: give exactly one of `kind` or `uses`")
+            continue
+        try:
+            classes[op.id] = load_operator_class(op.kind, op.uses)
+        except UnknownOperatorError as exc:
+            problems.append(f"operator {op.id!r}: {exc}")
+    graph = Graph(spec, classes, path)
+
+    for op in spec.operators:
+        cls = classes.get(op.id)
+        if cls is None:
+            continue
+        try:
+            cls.validate_params(op.params)
+        except ValidationError as exc:
+            for err in exc.errors():
+                loc = ".".join(str(x) for x in err["loc"]) or "params"
+                problems.append(f"operator {op.id!r}: parameter {loc!r}: {err['msg']}")
+        if cls.ordered and op.replicas > 1:
+            problems.append(f"operator {op.id!r}: kind {cls.kind!r} processes frames in order and cannot have replicas")
+        ports = {p.name: p for p in cls.inputs}
+        for name in sorted(set(op.inputs) - set(ports)):
+            problems.append(f"operator {op.id!r}: unknown input port {name!r}; {cls.kind or cls.__name__} has {sorted(ports)}")
+        for name in sorted(set(ports) - set(op.inputs)):
+            problems.append(f"operator {op.id!r}: input port {name!r} is not wired")
+        for name, source in op.inputs.items():
+            if name not in ports:
+                continue
+            if "/" not in source:
+                problems.append(f"operator {op.id!r}: input {name!r} = {source!r}; expected `operator/output`")
+                continue
+            matches = [m for m in graph.producers(source) if m[0] in classes]
+            if not matches:
+                problems.append(f"operator {op.id!r}: input {name!r} = {source!r} names an output no operator declares")
+            elif len(matches) > 1 and not ports[name].many:
+                problems.append(f"operator {op.id!r}: input {name!r} = {source!r} matches {len(matches)} outputs but the port takes one")
+    if not problems:
+        cycle = _find_cycle(graph)
+        if cycle:
+            problems.append("cycle: " + " -> ".join(cycle))
+    if problems:
+        raise GraphError([where + p for p in problems])
+    return graph
+
+
+def _find_cycle(graph: Graph) -> list[str] | None:
+    edges = {op.id: [c for c in graph.consumers(op.id)] for op in graph.spec.operators}
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in edges[node]:
+            if state.get(nxt) == 1:
+                return stack[stack.index(nxt) :] + [nxt]
+            if nxt not in state:
+                found = visit(nxt)
+                if found:
+                    return found
+        stack.pop()
+        state[node] = 2
+        return None
+
+    for node in edges:
+        if node not in state:
+            found = visit(node)
+            if found:
+                return found
+    return None
+
+
+def _describe(err: dict, data: dict) -> str:
+    loc = list(err["loc"])
+    if len(loc) >= 2 and loc[0] == "operators" and isinstance(loc[1], int):
+        ops = data.get("operators") or []
+        op_id = ops[loc[1]].get("id", f"#{loc[1]}") if loc[1] < len(ops) and isinstance(ops[loc[1]], dict) else f"#{loc[1]}"
+        field = ".".join(str(x) for x in loc[2:]) or "entry"
+        return f"operator {op_id!r}: key {field!r}: {err['msg']}"
+    return f"key {'.'.join(str(x) for x in loc)!r}: {err['msg']}"

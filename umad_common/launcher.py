@@ -1,0 +1,289 @@
+"""The launcher: the hub, one process per operator replica, restarts, recording, clean shutdown.
+
+The graph is done when every source process has exited 0 (its stream is fully acked); the other
+processes are then stopped with SIGTERM. Ctrl-C does the same at any time. A process that crashes
+is restarted with exponential backoff up to `max_restarts` times; after that, or when it exits with
+the runtime's configuration-error code, the whole graph stops and the launcher exits non-zero.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from replay.log import McapRecorder
+from umad_common.bus import Keys, TlsConfig, cleanup_stale_shm, open_hub
+from umad_common.graph import Graph, GraphError, OperatorSpec, load_graph
+from umad_common.runtime import EXIT_CONFIG
+
+log = logging.getLogger("umad.launch")
+STOP_GRACE_S = 10.0
+RECORDER_IDLE_S = 1.0
+
+
+@dataclass
+class Replica:
+    op_id: str
+    index: int
+    command: list[str]
+    is_source: bool
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+    restart_at: float | None = None
+    finished: bool = False
+    failed: bool = False
+    readers: list[threading.Thread] = field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        return f"{self.op_id}.{self.index}"
+
+
+class Launcher:
+    def __init__(
+        self,
+        graph: Graph,
+        graph_file: Path,
+        sets: list[str] | None = None,
+        record: Path | None = None,
+        max_frames: int | None = None,
+        hub: str | None = None,
+        replay_log: Path | None = None,
+        allow_truncated: bool = False,
+        max_restarts: int = 3,
+        start_hub: bool = True,
+    ):
+        self.graph = graph
+        self.graph_file = Path(graph_file)
+        self.hub = hub or graph.spec.hub
+        self.record = record
+        self.max_restarts = max_restarts
+        self.start_hub = start_hub
+        self.stats: dict[str, dict] = {}
+        self._stop = threading.Event()
+        self._print_lock = threading.Lock()
+        self.sets = sets or []
+        self._control: queue.Queue = queue.Queue()
+        sources = set(graph.sources())
+        self.replicas: list[Replica] = []
+        for spec in graph.spec.operators:
+            for index in range(spec.replicas):
+                cmd = self._command(graph, self.graph_file, spec, index)
+                if spec.id in sources:
+                    if max_frames is not None:
+                        cmd += ["--max-frames", str(max_frames)]
+                    if replay_log is not None:
+                        cmd += ["--replay-log", str(replay_log)]
+                        if allow_truncated:
+                            cmd.append("--allow-truncated")
+                self.replicas.append(Replica(spec.id, index, cmd, spec.id in sources))
+
+    def _command(self, graph: Graph, graph_file: Path, spec: OperatorSpec, index: int) -> list[str]:
+        """The command line of one replica, in the operator's own Python environment if it names one."""
+        python = spec.python or sys.executable
+        if spec.python and not Path(spec.python).is_absolute():
+            python = str(graph.base_dir / spec.python)
+        cmd = [python, "-m", "umad_common.runtime", "--graph", str(graph_file), "--op", spec.id,
+               "--replica", str(index), "--connect", self.hub]
+        for text in self.sets:
+            if text.split(".", 1)[0] == spec.id:
+                cmd += ["--set", text]
+        return cmd
+
+    # -- processes ----------------------------------------------------------------------------------
+
+    def _say(self, name: str, line: str) -> None:
+        with self._print_lock:
+            sys.stdout.write(f"[{name}] {line}" if line.endswith("\n") else f"[{name}] {line}\n")
+            sys.stdout.flush()
+
+    def _spawn(self, rep: Replica) -> None:
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        rep.proc = subprocess.Popen(
+            rep.command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
+            start_new_session=True, env=env,
+        )
+        reader = threading.Thread(target=self._pump, args=(rep, rep.proc), daemon=True)
+        reader.start()
+        rep.readers.append(reader)
+        rep.restart_at = None
+
+    def _pump(self, rep: Replica, proc: subprocess.Popen) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            self._say(rep.name, line)
+
+    def _watch(self, rep: Replica) -> None:
+        """Check one replica: finished, crashed (schedule a restart), or failed for good."""
+        if rep.proc is None or rep.finished or rep.failed:
+            if rep.restart_at is not None and time.monotonic() >= rep.restart_at:
+                self._spawn(rep)
+            return
+        code = rep.proc.poll()
+        if code is None:
+            return
+        if code == 0:  # a source whose stream is acked, or an operator stopped on purpose
+            rep.finished = True
+            return
+        if code == EXIT_CONFIG:
+            self._say(rep.name, "failed on its configuration; not restarting")
+            rep.failed = True
+            return
+        if rep.restarts >= self.max_restarts:
+            self._say(rep.name, f"exited with {code} after {rep.restarts} restarts; giving up")
+            rep.failed = True
+            return
+        delay = 0.5 * 2**rep.restarts
+        rep.restarts += 1
+        self._say(rep.name, f"exited with {code}; restart {rep.restarts}/{self.max_restarts} in {delay:.1f}s")
+        rep.proc = None
+        rep.restart_at = time.monotonic() + delay
+
+    def _terminate_all(self) -> None:
+        for rep in self.replicas:
+            if rep.proc and rep.proc.poll() is None:
+                rep.proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + STOP_GRACE_S
+        for rep in self.replicas:
+            if rep.proc is None:
+                continue
+            try:
+                rep.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self._say(rep.name, "did not stop after SIGTERM; killing")
+                os.killpg(rep.proc.pid, signal.SIGKILL)
+                rep.proc.wait()
+        for rep in self.replicas:
+            for reader in rep.readers:
+                reader.join(timeout=1.0)
+
+    # -- the run ------------------------------------------------------------------------------------
+
+    def run(self) -> int:
+        """Run the graph until its sources finish, an operator fails for good, or SIGINT/SIGTERM."""
+        def on_signal(signum, _frame):
+            log.info("stopping the graph (%s)", signal.Signals(signum).name)
+            self._stop.set()
+
+        previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+        tls = TlsConfig(**self.graph.spec.tls.model_dump()) if self.graph.spec.tls else None
+        hub = open_hub(self.hub, tls) if self.start_hub else None
+        recorder = None
+        subscribers = []
+        try:
+            keys = Keys(self.graph.name)
+            if hub is not None:
+                subscribers.append(hub.declare_subscriber(f"{keys.root}/_stats/**", self._on_stats))
+                subscribers.append(hub.declare_subscriber(keys.control("_launcher"), self._on_control))
+                if self.record:
+                    recorder = McapRecorder(self.record, self.graph_file.read_text(), {"base_dir": str(self.graph.base_dir)})
+                    subscribers.append(hub.declare_subscriber(f"{keys.root}/**", lambda s: self._on_record(recorder, s)))
+            for rep in self.replicas:
+                self._spawn(rep)
+            code = self._supervise()
+            if recorder is not None:
+                while time.monotonic() - recorder.last_write < RECORDER_IDLE_S:
+                    time.sleep(0.1)
+            self._terminate_all()
+            return code
+        finally:
+            for sub in subscribers:
+                sub.undeclare()
+            if recorder is not None:
+                recorder.close()
+                log.info("recorded %d messages to %s", recorder.count, self.record)
+            if hub is not None:
+                hub.close()
+            cleanup_stale_shm()
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+            self._print_summary()
+
+    def _supervise(self) -> int:
+        sources = [r for r in self.replicas if r.is_source]
+        while not self._stop.is_set():
+            self._apply_control()
+            for rep in self.replicas:
+                self._watch(rep)
+            if any(r.failed for r in self.replicas):
+                failed = [r.name for r in self.replicas if r.failed]
+                log.error("graph failed: %s", ", ".join(failed))
+                return 1
+            if sources and all(r.finished for r in sources):
+                log.info("all sources finished")
+                return 0
+            time.sleep(0.1)
+        return 130
+
+    def _on_control(self, sample: zenoh.Sample) -> None:
+        """`umad op start|stop ID`: handled on the supervisor thread via a queue."""
+        try:
+            self._control.put(json.loads(sample.payload.to_bytes()))
+        except ValueError:
+            log.warning("ignoring a malformed launcher command")
+
+    def _apply_control(self) -> None:
+        while not self._control.empty():
+            command = self._control.get()
+            if "stop" in command:
+                for rep in self.replicas:
+                    if rep.op_id == command["stop"] and rep.proc and rep.proc.poll() is None:
+                        self._say(rep.name, "stopping on request")
+                        rep.proc.send_signal(signal.SIGTERM)
+            elif "start" in command:
+                self._start_operator(command["start"], command.get("graph"))
+
+    def _start_operator(self, op_id: str, graph_file: str | None) -> None:
+        try:
+            graph = load_graph(graph_file or self.graph_file)
+            spec = graph.op(op_id)
+        except GraphError as exc:
+            log.error("cannot start %s: %s", op_id, exc)
+            return
+        self.replicas = [r for r in self.replicas if not (r.op_id == op_id and (r.finished or r.failed))]
+        if any(r.op_id == op_id for r in self.replicas):
+            log.warning("%s is already running", op_id)
+            return
+        for index in range(spec.replicas):
+            rep = Replica(op_id, index, self._command(graph, Path(graph_file or self.graph_file), spec, index), False)
+            self.replicas.append(rep)
+            self._spawn(rep)
+            self._say(rep.name, "started on request")
+
+    def _on_stats(self, sample: zenoh.Sample) -> None:
+        try:
+            data = json.loads(sample.payload.to_bytes())
+            self.stats[f"{data['op']}.{data['replica']}"] = data
+        except (ValueError, KeyError):
+            pass
+
+    def _on_record(self, recorder: McapRecorder, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        parts = key.split("/")
+        if len(parts) > 2 and parts[2] in ("_stats", "_ack", "_live"):
+            return
+        recorder.write(key, sample.payload.to_bytes())
+
+    def _print_summary(self) -> None:
+        if not self.stats:
+            return
+        head = f"{'replica':<24}{'in':>8}{'out':>8}{'errors':>8}{'bad':>6}{'dups':>6}{'p50 ms':>9}{'p99 ms':>9}"
+        lines = [head]
+        for name in sorted(self.stats):
+            s = self.stats[name]
+            p50 = f"{s['p50_ms']:.1f}" if s.get("p50_ms") is not None else "-"
+            p99 = f"{s['p99_ms']:.1f}" if s.get("p99_ms") is not None else "-"
+            lines.append(f"{name:<24}{s['frames_in']:>8}{s['frames_out']:>8}{s['errors']:>8}{s['bad_messages']:>6}{s['duplicates']:>6}{p50:>9}{p99:>9}")
+        with self._print_lock:
+            print("\n".join(lines), flush=True)

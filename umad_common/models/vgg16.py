@@ -1,0 +1,94 @@
+"""VGG16's convolutional trunk up to relu4_3, in plain torch, for the perceptual difference.
+
+Layer indices match torchvision's `vgg16().features`, so a torchvision-format state dict file
+(`features.0.weight`, `features.0.bias`, ... ; classifier and block-5 keys ignored) loads as is.
+No weights ship with UMAD and nothing downloads: the user names a local file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import nn
+
+# torchvision's configuration "D" up to conv4_3; "M" is a 2x2 max-pool.
+VGG16_TRUNK = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512)
+# indices in `features` of relu1_2, relu2_2, relu3_3, relu4_3
+VGG16_TAPS = {"relu1_2": 3, "relu2_2": 8, "relu3_3": 15, "relu4_3": 22}
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+class WeightsError(ValueError):
+    """A weight file is missing, unreadable or does not fit the model (names the key and shapes)."""
+
+
+class Vgg16Features(nn.Module):
+    """VGG16 `features[0..22]`; forward returns the four relu taps for an RGB batch in [0, 1]."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        channels = 3
+        for item in VGG16_TRUNK:
+            if item == "M":
+                layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
+            else:
+                layers += [nn.Conv2d(channels, int(item), kernel_size=3, padding=1), nn.ReLU(inplace=True)]
+                channels = int(item)
+        self.features = nn.Sequential(*layers)
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+
+    def forward(self, rgb: torch.Tensor) -> list[torch.Tensor]:
+        """(B, 3, H, W) in [0, 1] -> [relu1_2 (B,64,H,W), relu2_2 (B,128,H/2,W/2),
+        relu3_3 (B,256,H/4,W/4), relu4_3 (B,512,H/8,W/8)]."""
+        x = (rgb - self.mean) / self.std
+        taps = set(VGG16_TAPS.values())
+        out = []
+        for index, layer in enumerate(self.features):
+            x = layer(x)
+            if index in taps:
+                out.append(x)
+        return out
+
+
+def read_state_dict(path: Path) -> dict[str, torch.Tensor]:
+    """Tensors from a `.safetensors` file or a `torch.save`d dict (loaded with weights_only=True)."""
+    if not path.is_file():
+        raise WeightsError(f"{path}: weight file not found")
+    try:
+        if path.suffix == ".safetensors":
+            from safetensors.torch import load_file
+
+            return load_file(str(path))
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise WeightsError(f"{path}: cannot read weights ({type(exc).__name__}: {exc})") from None
+    if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
+        state = state["state_dict"]
+    if not isinstance(state, dict):
+        raise WeightsError(f"{path}: expected a state dict of tensors, got {type(state).__name__}")
+    return state
+
+
+def load_into(model: nn.Module, state: dict[str, torch.Tensor], path: Path) -> None:
+    """Copy every parameter of `model` from `state`, keys and shapes checked; other keys ignored."""
+    expected = model.state_dict()
+    for key, want in expected.items():
+        if key not in state:
+            raise WeightsError(f"{path}: missing key {key!r} (expected shape {tuple(want.shape)})")
+        got = state[key]
+        if not isinstance(got, torch.Tensor) or tuple(got.shape) != tuple(want.shape):
+            got_shape = tuple(got.shape) if isinstance(got, torch.Tensor) else type(got).__name__
+            raise WeightsError(f"{path}: layer {key!r} expected shape {tuple(want.shape)}, got {got_shape}")
+    model.load_state_dict({key: state[key].float() for key in expected}, strict=True)
+
+
+def load_vgg16_features(path: str | Path) -> Vgg16Features:
+    """Vgg16Features with weights from a torchvision-format VGG16 state dict file, in eval mode."""
+    path = Path(path)
+    model = Vgg16Features()
+    load_into(model, read_state_dict(path), path)
+    return model.eval().requires_grad_(False)

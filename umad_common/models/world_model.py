@@ -1,0 +1,397 @@
+"""The UMAD world model: multimodal, action-conditioned latent dynamics (RSSM, as in MILE/MUVO).
+
+Per model step t the camera image, the lidar (as a 64 x W range image), the route map and the speed
+are encoded into one embedding; a recurrent state s_t = (h_t, z_t) holds a deterministic GRU path
+h_t and a small stochastic latent z_t:
+
+    h_t = GRU(h_{t-1}, [z_{t-1}, a_{t-1}])      a = [throttle - brake, steer], the control after t-1
+    prior      p(z_t | h_t)                     what the model expects without looking
+    posterior  q(z_t | h_t, embed(o_t))         what it believes after looking
+    decoders   (h_t, z_t) -> RGB image, lidar range
+
+`observe` runs the posterior over a sequence and reconstructs every frame; `imagine` rolls the prior
+forward with given actions and decodes predicted frames. The image reaches the decoder only through
+the state (a few hundred numbers, no skip connections), so the model can only draw what its training
+on normal driving taught it: an object it never saw is not reproduced, and that is the signal.
+
+The preprocessing that defines the inputs (plain resize without crop, lidar range projection) lives
+here too, so training, evaluation and the predictor operator feed the model identically.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+
+@dataclass
+class WorldModelConfig:
+    image_height: int = 128  # camera resized (no crop) to image_height x image_width
+    image_width: int = 192
+    image_channels: tuple[int, ...] = (16, 32, 64, 64, 64)  # conv widths, one stride-2 stage each
+    image_embed: int = 256  # image embedding size
+    lidar_rows: int = 64  # range image rows = lidar channels
+    lidar_width: int = 256  # range image columns (360 degrees of azimuth)
+    lidar_fov_up: float = 15.0  # degrees above the horizon covered by the top row
+    lidar_fov_down: float = -25.0  # degrees of the bottom row
+    lidar_scale: float = 50.0  # metres; the range image holds (x, y, z, range) / lidar_scale
+    lidar_channels: tuple[int, ...] = (16, 32, 32, 64, 64)
+    lidar_embed: int = 128
+    route_size: int = 64  # route map resized to route_size x route_size
+    route_channels: tuple[int, ...] = (16, 32, 32, 32)
+    route_embed: int = 64
+    speed_scale: float = 5.0  # speed input = speed_mps / speed_scale
+    deter_dim: int = 256  # GRU state h
+    stoch_dim: int = 32  # Gaussian latent z: the only per-frame path from the observation
+    hidden_dim: int = 256  # width of the prior / posterior / transition MLPs
+    min_std: float = 0.1  # floor of the latent standard deviation
+    decode_lidar: bool = True  # also reconstruct the lidar range channel (auxiliary loss)
+    frame_step: int = 1  # dataset frames per model step the model was trained with
+
+    def __post_init__(self) -> None:
+        for name in ("image_channels", "lidar_channels", "route_channels"):
+            setattr(self, name, tuple(int(c) for c in getattr(self, name)))
+        factor = 2 ** len(self.image_channels)
+        if self.image_height % factor or self.image_width % factor:
+            raise ValueError(
+                f"image size {self.image_height}x{self.image_width} must be divisible by {factor} "
+                f"(2 ** len(image_channels))"
+            )
+        lidar_factor = 2 ** len(self.lidar_channels)
+        if self.lidar_rows % lidar_factor or self.lidar_width % lidar_factor:
+            raise ValueError(f"lidar range image {self.lidar_rows}x{self.lidar_width} must be divisible by {lidar_factor}")
+        if self.route_size % 2 ** len(self.route_channels):
+            raise ValueError(f"route_size {self.route_size} must be divisible by {2 ** len(self.route_channels)}")
+
+    @property
+    def state_dim(self) -> int:
+        return self.deter_dim + self.stoch_dim
+
+    def to_dict(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, values: dict) -> WorldModelConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"world model config has unknown fields {unknown}; expected a subset of {sorted(known)}")
+        return cls(**values)
+
+
+# ---------------------------------------------------------------------------------------------
+# Input preprocessing (numpy, per frame)
+
+
+def resize_rgb(rgb: np.ndarray, config: WorldModelConfig) -> np.ndarray:
+    """(H, W, 3) uint8 camera -> (h, w, 3) uint8 at model size; plain area resize, no crop."""
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"camera image has shape {rgb.shape}; expected (H, W, 3)")
+    return cv2.resize(rgb, (config.image_width, config.image_height), interpolation=cv2.INTER_AREA)
+
+
+def resize_route(route: np.ndarray | None, config: WorldModelConfig) -> np.ndarray:
+    """(192, 192) uint8 route map (or None: no route) -> (route_size, route_size) uint8."""
+    if route is None:
+        return np.zeros((config.route_size, config.route_size), np.uint8)
+    route = np.asarray(route)
+    if route.ndim == 3:
+        route = route[..., 0]
+    return cv2.resize(route, (config.route_size, config.route_size), interpolation=cv2.INTER_AREA)
+
+
+def lidar_range_image(points: np.ndarray | None, config: WorldModelConfig) -> np.ndarray:
+    """Spherical projection of a (N, 4) cloud to a (4, rows, width) float32 range view.
+
+    AnoVox stores (x, -y, z, intensity) with CARLA's y pointing right, so the stored frame is
+    x forward, y left, z up. Column = azimuth (forward at the centre, left to the left), row =
+    elevation from `lidar_fov_up` (top) to `lidar_fov_down`. Where several points fall in one pixel
+    the nearest wins. Channels (x, y, z, range) / lidar_scale; empty pixels are 0.
+    """
+    rows, width = config.lidar_rows, config.lidar_width
+    image = np.zeros((4, rows, width), np.float32)
+    if points is None or len(points) == 0:
+        return image
+    points = np.asarray(points, np.float32)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise ValueError(f"lidar points have shape {points.shape}; expected (N, 4)")
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    rng = np.sqrt(x * x + y * y + z * z)
+    keep = np.isfinite(rng) & (rng > 0.1)
+    x, y, z, rng = x[keep], y[keep], z[keep], rng[keep]
+    azimuth = np.arctan2(y, x)
+    elevation = np.degrees(np.arctan2(z, np.sqrt(x * x + y * y)))
+    col = np.clip(((0.5 - azimuth / (2 * np.pi)) * width).astype(np.int64), 0, width - 1)
+    span = config.lidar_fov_up - config.lidar_fov_down
+    row = np.clip(((config.lidar_fov_up - elevation) / span * rows).astype(np.int64), 0, rows - 1)
+    pixel = row * width + col
+    order = np.lexsort((rng, pixel))  # by pixel, nearest first
+    first = np.ones(len(order), bool)
+    first[1:] = pixel[order][1:] != pixel[order][:-1]
+    chosen = order[first]
+    values = np.stack([x[chosen], y[chosen], z[chosen], rng[chosen]]) / config.lidar_scale
+    image.reshape(4, -1)[:, pixel[chosen]] = values
+    return image
+
+
+def action_of(throttle: float, brake: float, steer: float) -> np.ndarray:
+    """The model's action [throttle - brake, steer] as (2,) float32."""
+    return np.array([throttle - brake, steer], np.float32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Building blocks
+
+
+class ConvEncoder(nn.Module):
+    """(B, C, H, W) -> (B, embed): stride-2 convolutions, then one linear layer."""
+
+    def __init__(self, in_channels: int, channels: tuple[int, ...], height: int, width: int, embed: int):
+        super().__init__()
+        layers: list[nn.Module] = []
+        for out_channels in channels:
+            layers += [nn.Conv2d(in_channels, out_channels, 4, stride=2, padding=1), nn.SiLU()]
+            in_channels = out_channels
+        self.convs = nn.Sequential(*layers)
+        flat = channels[-1] * (height >> len(channels)) * (width >> len(channels))
+        self.out = nn.Sequential(nn.Linear(flat, embed), nn.LayerNorm(embed), nn.SiLU())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.out(self.convs(x).flatten(1))
+
+
+class ConvDecoder(nn.Module):
+    """(B, state) -> (B, out_channels, H, W): one linear layer to a small grid, then stride-2
+    transposed convolutions; the grid (channels[0] x H/2^k x W/2^k) is the whole image bottleneck."""
+
+    def __init__(self, state_dim: int, channels: tuple[int, ...], height: int, width: int, out_channels: int):
+        super().__init__()
+        self.grid = (channels[0], height >> len(channels), width >> len(channels))
+        self.inp = nn.Linear(state_dim, self.grid[0] * self.grid[1] * self.grid[2])
+        layers: list[nn.Module] = []
+        for i, in_channels in enumerate(channels):
+            last = i == len(channels) - 1
+            next_channels = out_channels if last else channels[i + 1]
+            layers.append(nn.ConvTranspose2d(in_channels, next_channels, 4, stride=2, padding=1))
+            if not last:
+                layers.append(nn.SiLU())
+        self.deconvs = nn.Sequential(*layers)
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        x = F.silu(self.inp(state)).view(-1, *self.grid)  # (B, C0, h0, w0)
+        return self.deconvs(x)
+
+
+def mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(in_dim, hidden), nn.LayerNorm(hidden), nn.SiLU(), nn.Linear(hidden, out_dim))
+
+
+class Observation(NamedTuple):
+    """A batch of observation sequences, model-ready tensors."""
+
+    rgb: torch.Tensor  # (B, T, 3, H, W) float in [0, 1]
+    lidar: torch.Tensor  # (B, T, 4, rows, width) range view
+    route: torch.Tensor  # (B, T, 1, R, R) float in [0, 1]
+    speed: torch.Tensor  # (B, T, 1) speed_mps / speed_scale
+
+
+class State(NamedTuple):
+    h: torch.Tensor  # (..., deter_dim) deterministic path
+    z: torch.Tensor  # (..., stoch_dim) stochastic latent
+
+
+class ObserveResult(NamedTuple):
+    states: State  # posterior states, each (B, T, .)
+    prior_mean: torch.Tensor  # (B, T, stoch_dim)
+    prior_std: torch.Tensor
+    post_mean: torch.Tensor
+    post_std: torch.Tensor
+    rgb: torch.Tensor  # (B, T, 3, H, W) reconstructions in [0, 1]
+    lidar_range: torch.Tensor | None  # (B, T, 1, rows, width) reconstructed range / lidar_scale
+
+
+class ImagineResult(NamedTuple):
+    states: State  # prior states, each (B, n, .)
+    rgb: torch.Tensor  # (B, n, 3, H, W) predicted frames
+
+
+# ---------------------------------------------------------------------------------------------
+# The model
+
+
+class WorldModel(nn.Module):
+    def __init__(self, config: WorldModelConfig):
+        super().__init__()
+        self.config = c = config
+        self.image_encoder = ConvEncoder(3, c.image_channels, c.image_height, c.image_width, c.image_embed)
+        self.lidar_encoder = ConvEncoder(4, c.lidar_channels, c.lidar_rows, c.lidar_width, c.lidar_embed)
+        self.route_encoder = ConvEncoder(1, c.route_channels, c.route_size, c.route_size, c.route_embed)
+        embed_dim = c.image_embed + c.lidar_embed + c.route_embed + 1  # + speed
+        self.transition_input = nn.Sequential(nn.Linear(c.stoch_dim + 2, c.hidden_dim), nn.SiLU())
+        self.gru = nn.GRUCell(c.hidden_dim, c.deter_dim)
+        self.prior_net = mlp(c.deter_dim, c.hidden_dim, 2 * c.stoch_dim)
+        self.posterior_net = mlp(c.deter_dim + embed_dim, c.hidden_dim, 2 * c.stoch_dim)
+        image_dec = tuple(reversed(c.image_channels))
+        self.image_decoder = ConvDecoder(c.state_dim, image_dec, c.image_height, c.image_width, 3)
+        if c.decode_lidar:
+            lidar_dec = tuple(reversed(c.lidar_channels))
+            self.lidar_decoder = ConvDecoder(c.state_dim, lidar_dec, c.lidar_rows, c.lidar_width, 1)
+
+    # -- pieces ---------------------------------------------------------------------------------
+
+    def initial_state(self, batch: int) -> State:
+        """The state before a drive's first frame (zeros)."""
+        weight = self.gru.weight_hh
+        return State(weight.new_zeros(batch, self.config.deter_dim), weight.new_zeros(batch, self.config.stoch_dim))
+
+    def embed(self, obs: Observation) -> torch.Tensor:
+        """(B, T, ...) observations -> (B, T, embed_dim)."""
+        b, t = obs.rgb.shape[:2]
+        parts = [
+            self.image_encoder(obs.rgb.flatten(0, 1) - 0.5),
+            self.lidar_encoder(obs.lidar.flatten(0, 1)),
+            self.route_encoder(obs.route.flatten(0, 1) - 0.5),
+            obs.speed.flatten(0, 1),
+        ]
+        return torch.cat(parts, dim=-1).view(b, t, -1)
+
+    def _gaussian(self, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, raw_std = params.chunk(2, dim=-1)
+        return mean, F.softplus(raw_std) + self.config.min_std
+
+    def transition(self, state: State, action: torch.Tensor) -> torch.Tensor:
+        """h_t from s_{t-1} and the action a_{t-1} (B, 2) taken after it -> (B, deter_dim)."""
+        return self.gru(self.transition_input(torch.cat([state.z, action], dim=-1)), state.h)
+
+    def prior(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self._gaussian(self.prior_net(h))
+
+    def posterior(self, h: torch.Tensor, embed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self._gaussian(self.posterior_net(torch.cat([h, embed], dim=-1)))
+
+    def decode(self, state: State) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """States (N, .) -> RGB (N, 3, H, W) in [0, 1] and range (N, 1, rows, width) or None."""
+        features = torch.cat([state.h, state.z], dim=-1)
+        rgb = torch.sigmoid(self.image_decoder(features))
+        lidar = self.lidar_decoder(features) if self.config.decode_lidar else None
+        return rgb, lidar
+
+    # -- sequences ------------------------------------------------------------------------------
+
+    def observe(
+        self, obs: Observation, prev_actions: torch.Tensor, state: State | None = None, sample: bool = False
+    ) -> ObserveResult:
+        """Filter a sequence with the posterior and reconstruct each frame from its state.
+
+        Args:
+            obs: observations of steps 0..T-1.
+            prev_actions: (B, T, 2) row t = the action taken after step t-1 (zeros at a drive start).
+            state: the state before step 0 (default: a drive start).
+            sample: draw z from the posterior (training) instead of taking its mean.
+        """
+        b, t = obs.rgb.shape[:2]
+        embed = self.embed(obs)  # (B, T, E)
+        state = state or self.initial_state(b)
+        hs, zs, prior_stats, post_stats = [], [], [], []
+        for step in range(t):
+            h = self.transition(state, prev_actions[:, step])
+            prior_stats.append(self.prior(h))
+            mean, std = self.posterior(h, embed[:, step])
+            post_stats.append((mean, std))
+            z = mean + std * torch.randn_like(std) if sample else mean
+            state = State(h, z)
+            hs.append(h)
+            zs.append(z)
+        states = State(torch.stack(hs, 1), torch.stack(zs, 1))  # (B, T, .)
+        rgb, lidar = self.decode(State(states.h.flatten(0, 1), states.z.flatten(0, 1)))
+        return ObserveResult(
+            states=states,
+            prior_mean=torch.stack([m for m, _ in prior_stats], 1),
+            prior_std=torch.stack([s for _, s in prior_stats], 1),
+            post_mean=torch.stack([m for m, _ in post_stats], 1),
+            post_std=torch.stack([s for _, s in post_stats], 1),
+            rgb=rgb.view(b, t, *rgb.shape[1:]),
+            lidar_range=None if lidar is None else lidar.view(b, t, *lidar.shape[1:]),
+        )
+
+    def imagine(self, state: State, actions: torch.Tensor, n: int | None = None) -> ImagineResult:
+        """Roll the prior forward n steps from `state` (B, .) with actions (B, >=n, 2) (row k = the
+        action after imagined step k-1, i.e. after `state` for k = 0) and decode the predicted frames.
+        The prior mean is used: predictions are deterministic."""
+        n = actions.shape[1] if n is None else n
+        if actions.shape[1] < n:
+            raise ValueError(f"imagine: {actions.shape[1]} actions for {n} steps; expected at least {n}")
+        hs, zs = [], []
+        for step in range(n):
+            h = self.transition(state, actions[:, step])
+            state = State(h, self.prior(h)[0])
+            hs.append(state.h)
+            zs.append(state.z)
+        states = State(torch.stack(hs, 1), torch.stack(zs, 1))
+        rgb, _ = self.decode(State(states.h.flatten(0, 1), states.z.flatten(0, 1)))
+        return ImagineResult(states, rgb.view(state.h.shape[0], n, *rgb.shape[1:]))
+
+
+# ---------------------------------------------------------------------------------------------
+# Weights on disk: MODEL.safetensors + MODEL.json (config and training record)
+
+
+class WeightsError(ValueError):
+    """A world-model weight file is missing or does not fit its config (names file, tensor, shapes)."""
+
+
+def weight_paths(model: str | Path) -> tuple[Path, Path]:
+    """`path/name` or `path/name.safetensors` -> (path/name.safetensors, path/name.json)."""
+    model = Path(model)
+    stem = model.with_suffix("") if model.suffix in (".safetensors", ".json") else model
+    return stem.with_name(stem.name + ".safetensors"), stem.with_name(stem.name + ".json")
+
+
+def save_world_model(model: WorldModel, path: str | Path, record: dict | None = None) -> Path:
+    """Write the weights (safetensors) and a JSON beside them with the config and `record`."""
+    weights, meta = weight_paths(path)
+    weights.parent.mkdir(parents=True, exist_ok=True)
+    tensors = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
+    save_file(tensors, str(weights))
+    meta.write_text(json.dumps({"config": model.config.to_dict(), **(record or {})}, indent=2) + "\n")
+    return weights
+
+
+def load_world_model(path: str | Path) -> tuple[WorldModel, dict]:
+    """Load MODEL.safetensors + MODEL.json; returns the model (eval mode) and the JSON record."""
+    weights, meta = weight_paths(path)
+    for file in (weights, meta):
+        if not file.is_file():
+            raise WeightsError(f"{file}: world model file not found; expected {weights.name} with {meta.name} beside it")
+    try:
+        record = json.loads(meta.read_text())
+        config = WorldModelConfig.from_dict(record["config"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise WeightsError(f"{meta}: not a world model config ({exc}); expected JSON with a 'config' object") from None
+    model = WorldModel(config)
+    try:
+        tensors = load_file(str(weights))
+    except Exception as exc:  # safetensors raises its own error types for corrupt files
+        raise WeightsError(f"{weights}: cannot read safetensors file ({exc})") from None
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(tensors))
+    unexpected = sorted(set(tensors) - set(expected))
+    if missing or unexpected:
+        raise WeightsError(f"{weights}: tensors missing {missing[:5]}, unexpected {unexpected[:5]} for config {meta.name}")
+    for name, tensor in expected.items():
+        if tuple(tensors[name].shape) != tuple(tensor.shape):
+            raise WeightsError(
+                f"{weights}: tensor {name!r} has shape {tuple(tensors[name].shape)}; "
+                f"expected {tuple(tensor.shape)} for config {meta.name}"
+            )
+    model.load_state_dict(tensors)
+    return model.eval(), record

@@ -1,0 +1,186 @@
+"""What an operator module writes: its ports, its parameter schema and one per-frame function.
+
+Everything else (connecting to the hub, joining inputs by `(run, seq)`, ordering, acks, dedup,
+stats, shutdown) lives in `umad_common.runtime`. An operator is plain Python: construct it with its
+parameters and call `process(frame)` in a unit test, no Zenoh needed.
+
+    class Negate(Operator):
+        kind = "negate"
+        inputs = (Input("x"),)
+        outputs = ("y",)
+
+        class Params(BaseModel):
+            scale: float = 1.0
+
+        def process(self, frame):
+            x = frame.inputs["x"].arrays["value"]
+            return {"y": Output({"value": -self.params.scale * x})}
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from umad_common.messages import Message
+
+
+class NoParams(BaseModel):
+    """Parameter schema of an operator that takes none."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+@dataclass(frozen=True)
+class Input:
+    """An input port. `many=True` ports take a wildcard source (e.g. `diff_*/map`) and receive a
+    dict `{producer_id: Message}` of every live producer that matched."""
+
+    name: str
+    many: bool = False
+
+
+@dataclass
+class Output:
+    """What `process` returns per output port; the runtime adds run, seq, stamp and producer."""
+
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Frame:
+    """The joined inputs of one `(run, seq)`."""
+
+    run: str
+    seq: int
+    stamp_ns: int
+    inputs: dict[str, Message] = field(default_factory=dict)
+    many: dict[str, dict[str, Message]] = field(default_factory=dict)
+    partial: bool = False  # a `many` port was emitted at its deadline without every expected producer
+
+    @property
+    def frame_id(self) -> str:
+        return f"{self.run}#{self.seq}"
+
+
+@dataclass
+class Context:
+    """Where an operator runs: its id in the graph, its replica index, where relative paths resolve."""
+
+    op_id: str = "local"
+    replica: int = 0
+    graph_name: str = "umad"
+    base_dir: Path = field(default_factory=Path.cwd)
+    log: logging.Logger = field(default_factory=lambda: logging.getLogger("umad.op"))
+
+    def resolve(self, path: str | Path) -> Path:
+        """A path from the parameters, relative to the graph file's folder unless absolute."""
+        p = Path(path).expanduser()
+        return p if p.is_absolute() else (self.base_dir / p)
+
+
+class Operator:
+    """Base class of every operator kind.
+
+    Class attributes:
+        kind: the name graph.yaml uses.
+        inputs / outputs: the ports.
+        Params: a pydantic model; unknown keys are refused (set `extra="forbid"`).
+        ordered: frames of a run arrive in seq order, starting at 0 (stateful operators); such an
+            operator runs as a single replica.
+        end_of_run_outputs: `end_run` may return outputs (e.g. the accumulator's final metrics).
+    """
+
+    kind: ClassVar[str] = ""
+    inputs: ClassVar[tuple[Input, ...]] = ()
+    outputs: ClassVar[tuple[str, ...]] = ()
+    Params: ClassVar[type[BaseModel]] = NoParams
+    ordered: ClassVar[bool] = False
+
+    def __init__(self, params: BaseModel | dict | None = None, context: Context | None = None):
+        self.context = context or Context()
+        self.params = self.validate_params(params or {})
+
+    @classmethod
+    def validate_params(cls, params: BaseModel | dict) -> BaseModel:
+        """Check parameters against the schema (raises pydantic.ValidationError naming the field)."""
+        if isinstance(params, cls.Params):
+            return params
+        return cls.Params.model_validate(dict(params))
+
+    def update_params(self, params: BaseModel) -> None:
+        """Called between frames when the control key changes a parameter (already validated)."""
+        self.params = params
+
+    def process(self, frame: Frame) -> dict[str, Output]:
+        """Compute this frame's outputs. Raising skips the frame (logged with its id and counted)."""
+        raise NotImplementedError
+
+    def end_run(self, run: str) -> dict[str, Output]:
+        """Called once when a run has ended and all its frames were processed."""
+        return {}
+
+    def close(self) -> None:
+        """Release resources at shutdown."""
+
+
+@dataclass
+class SourceFrame:
+    """One frame a source emits."""
+
+    run: str
+    seq: int
+    stamp_ns: int
+    outputs: dict[str, Output] = field(default_factory=dict)
+    raw: dict[str, bytes] = field(default_factory=dict)  # port -> payload published verbatim (log replay)
+
+
+class Source(Operator):
+    """An operator with no inputs that produces frames (the replayer). The runtime paces it:
+    at most `window` frames in flight, advancing on acks from the graph's sinks."""
+
+    def frames(self) -> Iterator[SourceFrame]:
+        """Yield frames run after run, seq 0, 1, 2, ... within a run."""
+        raise NotImplementedError
+
+
+BUILTIN_KINDS = {
+    "replayer": "operators.replayer:Replayer",
+    "world_model": "operators.world_model:WorldModelPredictor",
+    "difference": "operators.difference:Difference",
+    "fusion": "operators.fusion:Fusion",
+    "segmenter": "operators.segmenter:Segmenter",
+    "mask_refiner": "operators.mask_refiner:MaskRefiner",
+    "mnad": "operators.mnad:MnadPredictor",
+    "accumulator": "operators.accumulator:Accumulator",
+}
+
+
+class UnknownOperatorError(LookupError):
+    """graph.yaml names an operator kind or import path that cannot be loaded."""
+
+
+def load_operator_class(kind: str | None = None, uses: str | None = None) -> type[Operator]:
+    """Find an operator class by built-in kind or by `package.module:ClassName` import path."""
+    target = uses or BUILTIN_KINDS.get(kind or "")
+    if target is None:
+        raise UnknownOperatorError(f"unknown operator kind {kind!r}; expected one of {sorted(BUILTIN_KINDS)} or `uses: pkg.module:Class`")
+    module_name, _, attr = target.partition(":")
+    if not attr:
+        raise UnknownOperatorError(f"import path {target!r} must look like `package.module:ClassName`")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise UnknownOperatorError(f"cannot import module {module_name!r} for operator {target!r}: {exc}") from None
+    cls = getattr(module, attr, None)
+    if not (isinstance(cls, type) and issubclass(cls, Operator)):
+        raise UnknownOperatorError(f"{target!r} is not an Operator subclass")
+    return cls

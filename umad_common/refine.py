@@ -1,0 +1,181 @@
+"""Fusion of difference maps and mask-level refinement: the arithmetic shared by the live operators
+(`operators/fusion.py`, `operators/mask_refiner.py`) and the offline sweep over a recorded log.
+
+Pure numpy, no state: the same inputs give bit-identical outputs wherever they run.
+
+Rules (ARCHITECTURE.md, "fuse" and "refine"):
+
+- `fuse` is the weighted sum of the maps present, divided by the sum of their weights (a weighted
+  mean). With a fixed set of metrics that division is one constant for every frame, so every
+  ranking metric (AP, FPR95, AUROC) equals the paper's plain weighted sum; when a metric is absent
+  from a frame (a difference operator joining late, leaving, or missing the live deadline) its
+  weight simply drops out and the frame stays on the same [0, 1] scale instead of being deflated.
+  A weight whose metric is absent is ignored; a map whose metric has no weight, or weight 0, does
+  not contribute. If no present metric has a positive weight the fused map is all zeros.
+- `refine` scores each mask by the `mean` (paper default) or `max` of the fused map over its pixels
+  and writes that score to every pixel of the mask. Where masks overlap, the highest score wins.
+  `single` keeps only the mask with the highest mean score. `none` returns the fused map unchanged.
+  Pixels no (surviving) mask covers are `keep` (their fused score) or `zero`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Literal
+
+import cv2
+import numpy as np
+
+RefineMode = Literal["mean", "max", "single", "none"]
+UncoveredRule = Literal["keep", "zero"]
+REFINE_MODES: tuple[str, ...] = ("mean", "max", "single", "none")
+UNCOVERED_RULES: tuple[str, ...] = ("keep", "zero")
+MAX_CHUNK_ELEMENTS = 1 << 22  # bounds the (masks x pixels) float temporaries of the `max` mode
+
+
+def resize_nearest(array: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Nearest-neighbour resize of the last two axes to `shape` (h, w), any dtype.
+
+    Each output pixel takes the input pixel under its centre (OpenCV's INTER_NEAREST_EXACT rule),
+    so labels, instance ids and masks stay exact values and align with a plain image resize.
+    """
+    in_h, in_w = array.shape[-2:]
+    out_h, out_w = shape
+    if (in_h, in_w) == (out_h, out_w):
+        return array
+    rows = np.minimum(((np.arange(out_h) + 0.5) * in_h / out_h).astype(np.int64), in_h - 1)
+    cols = np.minimum(((np.arange(out_w) + 0.5) * in_w / out_w).astype(np.int64), in_w - 1)
+    return array[..., rows[:, None], cols[None, :]]
+
+
+def resize_bilinear(score_map: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Bilinear resize of a (h, w) score map to `shape` (h, w), float32."""
+    score_map = np.asarray(score_map, dtype=np.float32)
+    if score_map.shape == tuple(shape):
+        return score_map
+    return cv2.resize(score_map, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+
+
+def fuse(
+    maps: Mapping[str, np.ndarray],
+    weights: Mapping[str, float],
+    shape: tuple[int, int] | None = None,
+) -> np.ndarray:
+    """Weighted mean of the difference maps present (see the module docstring for the rule).
+
+    Args:
+        maps: metric name -> (h, w) score map, normalised to [0, 1].
+        weights: metric name -> weight in [0, 1].
+        shape: output (h, w); maps of another size are resized bilinearly. Default: the largest
+            map's shape (every map when they agree).
+
+    Returns:
+        (h, w) float32 fused map.
+
+    Raises:
+        ValueError: no maps, a map that is not 2-D, or a negative weight.
+    """
+    if not maps:
+        raise ValueError("fuse: no difference maps given; expected at least one (h, w) map")
+    for metric, score_map in maps.items():
+        if np.ndim(score_map) != 2:
+            raise ValueError(f"fuse: map {metric!r} has shape {np.shape(score_map)}; expected (h, w)")
+    for metric, weight in weights.items():
+        if weight < 0:
+            raise ValueError(f"fuse: weight of {metric!r} is {weight}; expected a value in [0, 1]")
+    if shape is None:
+        shape = max((np.shape(m) for m in maps.values()), key=lambda s: (s[0] * s[1], s))
+    fused = np.zeros(shape, dtype=np.float64)
+    total_weight = 0.0
+    for metric in sorted(maps):  # fixed order: the result does not depend on arrival order
+        weight = float(weights.get(metric, 0.0))
+        if weight > 0:
+            fused += weight * resize_bilinear(maps[metric], shape)
+            total_weight += weight
+    if total_weight > 0:
+        fused /= total_weight
+    return fused.astype(np.float32)
+
+
+def used_weights(metrics: list[str] | set[str], weights: Mapping[str, float]) -> dict[str, float]:
+    """The metrics of `metrics` that `fuse` actually uses, with their weights (sorted by name)."""
+    return {m: float(weights[m]) for m in sorted(metrics) if float(weights.get(m, 0.0)) > 0}
+
+
+def mask_scores(fused: np.ndarray, masks: np.ndarray, how: Literal["mean", "max"]) -> np.ndarray:
+    """Per-mask score of the fused map: (K,) float64; empty masks score -inf (they paint nothing).
+
+    `mean` is a (K x N) @ (N,) product; both modes work through chunks of masks so the float
+    temporaries stay under MAX_CHUNK_ELEMENTS elements at any frame size.
+    """
+    flat_masks = masks.reshape(masks.shape[0], -1)
+    flat_scores = np.asarray(fused, dtype=np.float64).reshape(-1)
+    areas = flat_masks.sum(axis=1)
+    scores = np.full(masks.shape[0], -np.inf)
+    chunk = max(1, MAX_CHUNK_ELEMENTS // max(1, flat_scores.size))
+    for start in range(0, masks.shape[0], chunk):
+        block = flat_masks[start : start + chunk]
+        if how == "mean":
+            block_areas = areas[start : start + chunk]
+            sums = block.astype(np.float64) @ flat_scores
+            scores[start : start + chunk] = np.where(block_areas > 0, sums / np.maximum(block_areas, 1), -np.inf)
+        else:
+            scores[start : start + chunk] = np.where(block, flat_scores[None, :], -np.inf).max(axis=1)
+    return scores
+
+
+def paint_masks(scores: np.ndarray, masks: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """Write each mask's score to its pixels, the highest score winning where masks overlap;
+    pixels no mask covers (or only empty-scored masks) take `background`."""
+    out = np.array(background, dtype=np.float32, copy=True)
+    for k in np.argsort(scores, kind="stable"):  # ascending: a higher score is painted later, on top
+        if np.isfinite(scores[k]):
+            out[masks[k]] = scores[k]
+    return out
+
+
+def refine(
+    fused: np.ndarray,
+    masks: np.ndarray,
+    mode: RefineMode = "mean",
+    uncovered: UncoveredRule = "keep",
+) -> np.ndarray:
+    """Mask-level refinement of a fused anomaly map.
+
+    Args:
+        fused: (h, w) fused score map.
+        masks: (K, h, w) bool segment masks; K may be 0; masks may overlap.
+        mode: `mean` | `max`: each mask's mean | max fused score written to its pixels, the highest
+            score winning on overlaps; `single`: only the mask with the highest mean survives (ties:
+            the lowest index); `none`: the fused map unchanged.
+        uncovered: pixels no surviving mask covers: `keep` their fused score (a missed object still
+            shows its raw evidence) or `zero`.
+
+    Returns:
+        (h, w) float32 refined map.
+
+    Raises:
+        ValueError: unknown mode or rule, or masks whose shape does not match the map.
+    """
+    if mode not in REFINE_MODES:
+        raise ValueError(f"refine: unknown mode {mode!r}; expected one of {REFINE_MODES}")
+    if uncovered not in UNCOVERED_RULES:
+        raise ValueError(f"refine: unknown uncovered rule {uncovered!r}; expected one of {UNCOVERED_RULES}")
+    fused = np.asarray(fused, dtype=np.float32)
+    if fused.ndim != 2:
+        raise ValueError(f"refine: fused map has shape {fused.shape}; expected (h, w)")
+    masks = np.asarray(masks, dtype=bool)
+    if masks.ndim != 3 or masks.shape[1:] != fused.shape:
+        raise ValueError(f"refine: masks have shape {masks.shape}; expected (K, {fused.shape[0]}, {fused.shape[1]})")
+    if mode == "none":
+        return fused.copy()
+    background = fused if uncovered == "keep" else np.zeros_like(fused)
+    if masks.shape[0] == 0:
+        return np.array(background, dtype=np.float32, copy=True)
+    scores = mask_scores(fused, masks, "max" if mode == "max" else "mean")
+    if mode == "single":
+        best = int(np.argmax(scores))
+        keep_only_best = np.full_like(scores, -np.inf)
+        keep_only_best[best] = scores[best]
+        scores = keep_only_best
+    return paint_masks(scores, masks, background)

@@ -1,0 +1,154 @@
+"""How well a segmenter isolates anomalies, measured on labelled drives (ARCHITECTURE.md: the
+distance between unsupervised and ground-truth masks is where most of the AP is).
+
+Per method, over every frame of the given drives, at the world model's size:
+
+- `coverage`: the fraction of anomaly pixels covered by a mask that is at least half anomaly
+  (ignore-labelled pixels excluded from a mask's area). A mean-refined mask that is mostly anomaly
+  carries the anomaly's score; pixels of a mask that is mostly road are averaged away.
+- `best_iou`: the mean over anomaly objects (4-connected components of the anomaly label) of the
+  best IoU any single mask reaches with the object.
+- `masks_per_frame` and `ms_per_frame` (the segmenter operator's `process`, one thread).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from umad_common.messages import Message
+from umad_common.operator import Frame
+from umad_common.refine import resize_nearest
+from umad_common.segmentation import connected_regions
+
+IGNORE = 255
+WORLD_MODEL_SIZE = (128, 192)  # (h, w)
+
+
+@dataclass
+class LabelledFrame:
+    """One frame for the measurement: the world model's target plus full-size labels."""
+
+    run: str
+    seq: int
+    target: np.ndarray  # (h, w, 3) float32 in [0, 1]
+    anomaly: np.ndarray  # (H, W) uint8: 0 normal, 1 anomaly, 255 ignore
+    instance: np.ndarray | None  # (H, W) int32, 0 = none
+    semantic: np.ndarray | None  # (H, W) uint8
+
+
+@dataclass
+class SegmenterQuality:
+    """Figures of one segmenter configuration over a set of frames."""
+
+    params: dict
+    frames: int
+    anomaly_pixels: int
+    coverage: float
+    best_iou: float
+    masks_per_frame: float
+    ms_per_frame: float
+
+    def row(self) -> str:
+        return (
+            f"coverage {self.coverage:6.1%}  best IoU {self.best_iou:5.3f}  masks/frame {self.masks_per_frame:6.1f}  "
+            f"{self.ms_per_frame:7.1f} ms/frame  {self.params}"
+        )
+
+
+def anovox_frames(root: Path, size: tuple[int, int] = WORLD_MODEL_SIZE, every: int = 1) -> Iterator[LabelledFrame]:
+    """Frames of every scenario under `root` with at least one anomaly pixel; the camera resized
+    (no crop, area interpolation) to `size` (h, w) like the world model's target."""
+    from umad_common.datasets.anovox import AnoVoxScenario, find_scenarios
+
+    for path in find_scenarios(root):
+        scenario = AnoVoxScenario(path, every=every)
+        for seq in range(len(scenario)):
+            frame = scenario[seq]
+            if not (frame.anomaly == 1).any():
+                continue
+            target = cv2.resize(frame.rgb, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+            yield LabelledFrame(
+                scenario.name, seq, target.astype(np.float32) / 255.0, frame.anomaly, frame.instance, frame.semantic
+            )
+
+
+def operator_frame(sample: LabelledFrame) -> Frame:
+    """The segmenter operator's joined inputs for one labelled frame."""
+    truth = {"anomaly": sample.anomaly}
+    if sample.instance is not None:
+        truth["instance"] = sample.instance
+    if sample.semantic is not None:
+        truth["semantic"] = sample.semantic
+    return Frame(
+        sample.run,
+        sample.seq,
+        0,
+        inputs={
+            "frame": Message(sample.run, sample.seq, arrays={"target": sample.target}),
+            "truth": Message(sample.run, sample.seq, arrays=truth),
+        },
+    )
+
+
+def frame_quality(masks: np.ndarray, anomaly: np.ndarray) -> tuple[int, int, list[float]]:
+    """(anomaly pixels, those covered by a >= 50 % anomaly mask, best IoU per anomaly object) of one
+    frame; `anomaly` already at the masks' size."""
+    is_anomaly = anomaly == 1
+    valid = anomaly != IGNORE
+    total = int(is_anomaly.sum())
+    if masks.shape[0] == 0:
+        objects = connected_regions(np.where(is_anomaly, 1, -1)).max() + 1
+        return total, 0, [0.0] * int(objects)
+    flat = masks.reshape(masks.shape[0], -1)
+    inside = (flat & is_anomaly.reshape(-1)).sum(axis=1)
+    area = (flat & valid.reshape(-1)).sum(axis=1)
+    pure = inside * 2 >= np.maximum(area, 1)
+    pure &= inside > 0
+    covered = int((masks[pure].any(axis=0) & is_anomaly).sum())
+    objects = connected_regions(np.where(is_anomaly, 1, -1))
+    best = []
+    for k in range(objects.max() + 1):
+        obj = (objects == k).reshape(-1)
+        intersection = (flat & obj).sum(axis=1)
+        union = (flat & valid.reshape(-1)).sum(axis=1) + obj.sum() - intersection
+        best.append(float((intersection / np.maximum(union, 1)).max()))
+    return total, covered, best
+
+
+def measure_segmenter(params: dict, frames: Iterable[LabelledFrame]) -> SegmenterQuality:
+    """Run the segmenter operator with `params` on every frame and score its masks."""
+    from operators.segmenter import Segmenter
+
+    segmenter = Segmenter(params)
+    count = total = covered = masks_total = 0
+    seconds = 0.0
+    best_ious: list[float] = []
+    for sample in frames:
+        frame = operator_frame(sample)
+        start = time.perf_counter()
+        masks = segmenter.process(frame)["masks"].arrays["masks"]
+        seconds += time.perf_counter() - start
+        anomaly = resize_nearest(sample.anomaly, masks.shape[1:])
+        frame_total, frame_covered, frame_best = frame_quality(masks, anomaly)
+        count += 1
+        total += frame_total
+        covered += frame_covered
+        masks_total += masks.shape[0]
+        best_ious.extend(frame_best)
+    if count == 0:
+        raise ValueError("measure_segmenter: no frames with anomaly pixels; expected anomalous drives")
+    return SegmenterQuality(
+        params=dict(params),
+        frames=count,
+        anomaly_pixels=total,
+        coverage=covered / max(total, 1),
+        best_iou=float(np.mean(best_ious)) if best_ious else 0.0,
+        masks_per_frame=masks_total / count,
+        ms_per_frame=1000.0 * seconds / count,
+    )

@@ -1,0 +1,287 @@
+"""Training the world model on normal drives: data cache, loss, loop, checkpoints.
+
+Only normal drives are read (DATA/normal if it exists, else DATA), and of each frame only the
+model's inputs: camera, lidar, ego and route; never a label. Every frame is resized once into
+memory, then each epoch cuts every drive into windows of `sequence_length` model steps at a seeded
+random offset and visits them in a seeded order. Each epoch ends with a checkpoint
+(MODEL.train.pt: model, optimizer, epoch, history; read back with `torch.load(weights_only=True)`)
+and the weights (MODEL.safetensors + MODEL.json), so `--resume` continues where training stopped and
+gives the same weights as an uninterrupted run with the same seed, thread count and --epochs.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from umad_common.models.world_model import (
+    Observation,
+    ObserveResult,
+    WorldModel,
+    WorldModelConfig,
+    action_of,
+    lidar_range_image,
+    resize_route,
+    resize_rgb,
+    save_world_model,
+    weight_paths,
+)
+
+log = logging.getLogger("umad.train.world_model")
+
+
+@dataclass
+class TrainConfig:
+    sequence_length: int = 12  # model steps per training window
+    batch_size: int = 4  # windows per optimizer step
+    learning_rate: float = 1e-3  # Adam, cosine-decayed to 10 % over all steps
+    grad_clip: float = 100.0
+    kl_weight: float = 3e-5  # per nat of KL(posterior || prior), against per-pixel mean squared error
+    kl_balance: float = 0.8  # share of the KL gradient that trains the prior (DreamerV2 balancing)
+    free_nats: float = 1.0  # KL below this is not penalised
+    lidar_weight: float = 0.5  # weight of the range reconstruction L1 loss
+    holdout: int = 1  # last normal drives (sorted) kept out of training for evaluation
+
+
+@dataclass
+class DriveArrays:
+    """One drive, resized to model size and kept in memory."""
+
+    name: str
+    rgb: np.ndarray  # (T, H, W, 3) uint8
+    lidar: np.ndarray  # (T, 4, rows, width) float16 range view
+    route: np.ndarray  # (T, R, R) uint8
+    speed: np.ndarray  # (T,) float32 m/s
+    action: np.ndarray  # (T, 2) float32 [throttle - brake, steer] taken after frame t
+
+    def __len__(self) -> int:
+        return len(self.rgb)
+
+
+def normal_root(data: Path) -> Path:
+    """DATA/normal when the folder is a generated benchmark, else DATA itself."""
+    return data / "normal" if (data / "normal").is_dir() else data
+
+
+def load_drive(scenario, config: WorldModelConfig) -> DriveArrays:
+    """Read a scenario's model inputs (camera, lidar, ego, route; no labels) at model size."""
+    rgb, lidar, route, speed, action = [], [], [], [], []
+    for i in range(len(scenario)):
+        frame = scenario[i]
+        rgb.append(resize_rgb(frame.rgb, config))
+        lidar.append(lidar_range_image(frame.lidar, config).astype(np.float16))
+        route.append(resize_route(frame.route, config))
+        speed.append(frame.ego.speed_mps)
+        action.append(action_of(frame.ego.throttle, frame.ego.brake, frame.ego.steer))
+    return DriveArrays(
+        scenario.name, np.stack(rgb), np.stack(lidar), np.stack(route), np.array(speed, np.float32), np.stack(action)
+    )
+
+
+def load_normal_drives(data: Path, config: WorldModelConfig, holdout: int) -> tuple[list[DriveArrays], list[str]]:
+    """All normal drives under DATA except the last `holdout`; returns (drives, held-out names)."""
+    from umad_common.datasets.anovox import AnoVoxScenario, find_scenarios
+
+    paths = find_scenarios(normal_root(data))
+    if not paths:
+        raise FileNotFoundError(f"{normal_root(data)}: no Scenario_* folders; expected AnoVox normal drives")
+    holdout = min(holdout, len(paths) - 1)
+    train_paths, held = paths[: len(paths) - holdout], paths[len(paths) - holdout :]
+    drives = []
+    for path in tqdm(train_paths, desc="loading drives", unit="drive"):
+        drives.append(load_drive(AnoVoxScenario(path, every=config.frame_step), config))
+    return drives, [p.name for p in held]
+
+
+def observation_batch(drives: list[DriveArrays], windows: list[tuple[int, int]], length: int):
+    """Windows (drive index, start) -> (Observation, prev_actions (B, L, 2)) tensors."""
+    rgb, lidar, route, speed, prev = [], [], [], [], []
+    for d, start in windows:
+        drive = drives[d]
+        sl = slice(start, start + length)
+        rgb.append(drive.rgb[sl])
+        lidar.append(drive.lidar[sl])
+        route.append(drive.route[sl])
+        speed.append(drive.speed[sl])
+        actions = np.zeros((length, 2), np.float32)
+        actions[1:] = drive.action[start : start + length - 1]
+        if start > 0:
+            actions[0] = drive.action[start - 1]
+        prev.append(actions)
+    obs = Observation(
+        rgb=torch.from_numpy(np.stack(rgb)).permute(0, 1, 4, 2, 3).float().div_(255.0),
+        lidar=torch.from_numpy(np.stack(lidar)).float(),
+        route=torch.from_numpy(np.stack(route)).unsqueeze(2).float().div_(255.0),
+        speed=torch.from_numpy(np.stack(speed)).unsqueeze(2),
+    )
+    return obs, torch.from_numpy(np.stack(prev))
+
+
+def scale_speed(obs: Observation, config: WorldModelConfig) -> Observation:
+    return obs._replace(speed=obs.speed / config.speed_scale)
+
+
+def epoch_windows(drives: list[DriveArrays], length: int, rng: np.random.Generator) -> list[tuple[int, int]]:
+    """Non-overlapping windows covering every drive from a random offset, in random order."""
+    windows = []
+    for d, drive in enumerate(drives):
+        if len(drive) < length:
+            continue
+        offset = int(rng.integers(0, min(length, len(drive) - length + 1)))
+        windows += [(d, s) for s in range(offset, len(drive) - length + 1, length)]
+    order = rng.permutation(len(windows))
+    return [windows[i] for i in order]
+
+
+def guaranteed_windows(drives: list[DriveArrays], length: int) -> int:
+    """How many windows `epoch_windows` yields at least, whatever the offsets drawn."""
+    count = 0
+    for drive in drives:
+        if len(drive) >= length:
+            worst_offset = min(length, len(drive) - length + 1) - 1
+            count += (len(drive) - worst_offset - length) // length + 1
+    return count
+
+
+def gaussian_kl(mean_q, std_q, mean_p, std_p) -> torch.Tensor:
+    """KL(q || p) of diagonal Gaussians, summed over the last axis."""
+    return (torch.log(std_p / std_q) + (std_q**2 + (mean_q - mean_p) ** 2) / (2 * std_p**2) - 0.5).sum(-1)
+
+
+def world_model_loss(result: ObserveResult, obs: Observation, train: TrainConfig) -> dict[str, torch.Tensor]:
+    """Reconstruction (RGB MSE, lidar range L1) plus balanced, free-nats KL; returns every term."""
+    rgb_mse = (result.rgb - obs.rgb).pow(2).mean()
+    terms = {"rgb_mse": rgb_mse}
+    loss = rgb_mse
+    if result.lidar_range is not None:
+        lidar_l1 = (result.lidar_range - obs.lidar[:, :, 3:4]).abs().mean()
+        terms["lidar_l1"] = lidar_l1
+        loss = loss + train.lidar_weight * lidar_l1
+    post, prior = (result.post_mean, result.post_std), (result.prior_mean, result.prior_std)
+    kl_prior = gaussian_kl(*(t.detach() for t in post), *prior).mean()
+    kl_post = gaussian_kl(*post, *(t.detach() for t in prior)).mean()
+    kl = train.kl_balance * kl_prior + (1 - train.kl_balance) * kl_post
+    terms["kl"] = kl_prior.detach()
+    terms["loss"] = loss + train.kl_weight * torch.clamp(kl, min=train.free_nats)
+    return terms
+
+
+def psnr(mse: float) -> float:
+    return 10.0 * math.log10(1.0 / max(mse, 1e-10))
+
+
+def train_world_model(
+    data: Path,
+    out: Path,
+    epochs: int = 20,
+    seed: int = 0,
+    resume: bool = False,
+    threads: int = 2,
+    model_config: WorldModelConfig | None = None,
+    train_config: TrainConfig | None = None,
+) -> dict:
+    """Train on the normal drives under `data`; writes OUT.safetensors, OUT.json, OUT.train.pt.
+
+    Returns the JSON record written beside the weights (configs, held-out drives, loss history).
+    """
+    torch.set_num_threads(threads)
+    model_config = model_config or WorldModelConfig()
+    train = train_config or TrainConfig()
+    checkpoint_path = Path(str(weight_paths(out)[0].with_suffix("")) + ".train.pt")
+    checkpoint = None
+    if resume:
+        if not checkpoint_path.is_file():
+            raise FileNotFoundError(f"{checkpoint_path}: no training checkpoint to resume from")
+        checkpoint = torch.load(checkpoint_path, weights_only=True)
+        model_config = WorldModelConfig.from_dict(checkpoint["model_config"])
+        train = TrainConfig(**checkpoint["train_config"])
+        if checkpoint["seed"] != seed:
+            raise ValueError(f"{checkpoint_path}: trained with seed {checkpoint['seed']}; resume asked for seed {seed}")
+
+    started = time.perf_counter()
+    drives, heldout = load_normal_drives(Path(data), model_config, train.holdout)
+    frames = sum(len(d) for d in drives)
+    log.info("%d normal drives, %d frames in memory (held out: %s)", len(drives), frames, heldout)
+
+    torch.manual_seed(seed)
+    model = WorldModel(model_config)
+    optimizer = torch.optim.Adam(model.parameters(), lr=train.learning_rate)
+    steps_per_epoch = guaranteed_windows(drives, train.sequence_length) // train.batch_size
+    if steps_per_epoch == 0:
+        raise ValueError(
+            f"{data}: fewer than {train.batch_size} windows of {train.sequence_length} frames in the normal drives; "
+            "expected more or longer drives (or a smaller --batch-size / --sequence-length)"
+        )
+    total_steps = steps_per_epoch * epochs
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda step: 0.1 + 0.45 * (1 + math.cos(math.pi * min(step / total_steps, 1.0)))
+    )
+    history: list[dict] = []
+    first_epoch = 0
+    if checkpoint is not None:
+        model.load_state_dict(checkpoint["model"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        schedule.load_state_dict(checkpoint["schedule"])
+        history = list(checkpoint["history"])
+        first_epoch = int(checkpoint["epoch"]) + 1
+
+    if first_epoch >= epochs:
+        raise ValueError(f"{checkpoint_path}: already trained {first_epoch} epochs; ask for more than {epochs}")
+    model.train()
+    bar = tqdm(total=total_steps, initial=first_epoch * steps_per_epoch, desc="world model", unit="step")
+    for epoch in range(first_epoch, epochs):
+        rng = np.random.default_rng([seed, epoch])
+        torch.manual_seed(seed * 100_003 + epoch)
+        windows = epoch_windows(drives, train.sequence_length, rng)
+        sums = {"loss": 0.0, "rgb_mse": 0.0, "lidar_l1": 0.0, "kl": 0.0}
+        for step in range(steps_per_epoch):
+            batch = windows[step * train.batch_size : (step + 1) * train.batch_size]
+            obs, prev_actions = observation_batch(drives, batch, train.sequence_length)
+            obs = scale_speed(obs, model_config)
+            terms = world_model_loss(model.observe(obs, prev_actions, sample=True), obs, train)
+            optimizer.zero_grad(set_to_none=True)
+            terms["loss"].backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), train.grad_clip)
+            optimizer.step()
+            schedule.step()
+            for key, value in terms.items():
+                sums[key] += float(value.detach())
+            bar.update(1)
+            bar.set_postfix(epoch=epoch + 1, loss=f"{float(terms['loss']):.4f}", psnr=f"{psnr(float(terms['rgb_mse'])):.2f}")
+        means = {key: value / steps_per_epoch for key, value in sums.items()}
+        history.append({"epoch": epoch + 1, **means, "psnr": psnr(means["rgb_mse"])})
+        record = {
+            "train_config": asdict(train),
+            "seed": seed,
+            "epochs": epoch + 1,
+            "threads": threads,
+            "data": str(data),
+            "training_drives": [d.name for d in drives],
+            "heldout_drives": heldout,
+            "training_frames": frames,
+            "train_seconds": round(time.perf_counter() - started, 1),
+            "history": history,
+        }
+        save_world_model(model, out, record)
+        torch.save(
+            {
+                "model": model.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "schedule": schedule.state_dict(),
+                "epoch": epoch,
+                "seed": seed,
+                "history": history,
+                "model_config": model_config.to_dict(),
+                "train_config": asdict(train),
+            },
+            checkpoint_path,
+        )
+    bar.close()
+    return record

@@ -1,0 +1,1 @@
+"""Pictures and reports of an evaluation: curves, overlay grids, tables."""

@@ -1,0 +1,276 @@
+"""The evaluation report of a sweep: results.json, the ablation table (Markdown, CSV), curves,
+overlay grids, the per-scenario breakdown and an index (Markdown and HTML) tying them together.
+
+Table values are percentages; in each metric column the best value is **bold** and the second best
+_italic_ (AP and AUROC: higher is better; FPR95: lower is better), the MNAD baseline included.
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import json
+import math
+from fractions import Fraction
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from umad_common.metrics.pixel import PixelMetrics
+from umad_common.viz.plots import plot_curves, plot_overlay_grid
+
+if TYPE_CHECKING:
+    from replay.sweep import SweepResult
+
+METRIC_COLUMNS = {"abs": "ABS", "mse": "MSE", "ssim": "SSIM", "perceptual": "PD", "temporal": "TD"}
+PAPER_METRICS = tuple(METRIC_COLUMNS)
+SCORES = (("AP", True), ("FPR95", False), ("AUROC", True))  # (key, higher is better)
+
+
+def _number(value: float) -> float | None:
+    return None if value is None or math.isnan(value) else float(value)
+
+
+def _weights_label(weights: dict[str, Fraction]) -> str:
+    return " + ".join(f"{w} {m}" for m, w in weights.items())
+
+
+def table_rows(result: SweepResult) -> list[dict[str, Any]]:
+    """One dict per configuration, in table order: weight row, then mask setting; MNAD excluded."""
+    order = {None: -1} | {op: i for i, op in enumerate(sorted(result.segmenters, key=_segmenter_rank(result)))}
+    configs = sorted(result.metrics, key=lambda c: (c.row, order.get(c.segmenter, 99), _mode_rank(c.mode)))
+    rows = []
+    for config in configs:
+        scores = result.metrics[config].compute()
+        weights = result.rows[config.row]
+        rows.append(
+            {
+                "weights": {m: float(w) for m, w in weights.items()},
+                "weights_label": _weights_label(weights),
+                "masks": result.setting_label(config),
+                "segmenter": config.segmenter,
+                "mode": config.mode,
+                "AP": _number(scores["AP"]),
+                "FPR95": _number(scores["FPR95"]),
+                "AUROC": _number(scores["AUROC"]),
+                "frames": result.frames[config],
+                "n_anomaly": scores["n_anomaly"],
+                "n_normal": scores["n_normal"],
+            }
+        )
+    return rows
+
+
+def _segmenter_rank(result: SweepResult):
+    def rank(op: str) -> tuple[int, str]:
+        method = result.segmenters.get(op, op)
+        return ({"gt": 0, "sam": 2}.get(method, 1), op)
+
+    return rank
+
+
+def _mode_rank(mode: str) -> int:
+    return ("none", "mean", "max", "single").index(mode) if mode in ("none", "mean", "max", "single") else 9
+
+
+def baseline_row(result: SweepResult) -> dict[str, Any] | None:
+    if result.baseline is None:
+        return None
+    scores = result.baseline.compute()
+    return {
+        "name": "MNAD",
+        "masks": "no mask",
+        "AP": _number(scores["AP"]),
+        "FPR95": _number(scores["FPR95"]),
+        "AUROC": _number(scores["AUROC"]),
+        "frames": result.baseline_frames,
+        "n_anomaly": scores["n_anomaly"],
+        "n_normal": scores["n_normal"],
+    }
+
+
+def rank_marks(rows: list[dict[str, Any]]) -> list[dict[str, str]]:
+    """Per row and score column: "best", "second" or "" (ties share the mark)."""
+    marks = [{key: "" for key, _ in SCORES} for _ in rows]
+    for key, higher in SCORES:
+        values = sorted({r[key] for r in rows if r[key] is not None}, reverse=higher)
+        for mark, value in zip(("best", "second"), values, strict=False):
+            for i, r in enumerate(rows):
+                if r[key] == value:
+                    marks[i][key] = mark
+    return marks
+
+
+def _percent(value: float | None, mark: str = "") -> str:
+    if value is None:
+        return "n/a"
+    text = f"{100 * value:.2f}"
+    return f"**{text}**" if mark == "best" else f"_{text}_" if mark == "second" else text
+
+
+def write_table(rows: list[dict[str, Any]], baseline: dict[str, Any] | None, md_path: Path, csv_path: Path) -> str:
+    """The ablation table as Markdown (returned too) and CSV, baseline last."""
+    everything = rows + ([baseline] if baseline else [])
+    marks = rank_marks(everything)
+    header = [METRIC_COLUMNS[m] for m in PAPER_METRICS] + ["Masks", "AP ↑", "FPR95 ↓", "AUROC ↑", "frames"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    with open(csv_path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(
+            ["method", *PAPER_METRICS, "masks", "AP", "FPR95", "AUROC", "AP_mark", "FPR95_mark", "AUROC_mark", "frames"]
+        )
+        for row, mark in zip(everything, marks, strict=True):
+            weights = row.get("weights", {})
+            fractions = [str(Fraction(weights[m]).limit_denominator(10)) if m in weights else "" for m in PAPER_METRICS]
+            cells = fractions if "weights" in row else ["MNAD baseline", "", "", "", ""]
+            lines.append(
+                "| "
+                + " | ".join(
+                    [*cells, row["masks"], *(_percent(row[k], mark[k]) for k, _ in SCORES), str(row["frames"])]
+                )
+                + " |"
+            )
+            writer.writerow(
+                [
+                    "UMAD" if "weights" in row else row["name"],
+                    *fractions,
+                    row["masks"],
+                    *("" if row[k] is None else f"{row[k]:.6f}" for k, _ in SCORES),
+                    *(mark[k] for k, _ in SCORES),
+                    row["frames"],
+                ]
+            )
+    text = "\n".join(lines) + "\n\n**bold** = best, _italic_ = second best per column (MNAD included). Values in %.\n"
+    md_path.write_text(text)
+    return text
+
+
+def scenario_table(result: SweepResult, md_path: Path, csv_path: Path) -> str:
+    """AP / FPR95 / AUROC per scenario for the default weight row under each mask setting and MNAD."""
+    settings = sorted({label for per_run in result.per_scenario.values() for label in per_run}, key=_setting_order)
+    lines = [
+        "| scenario | " + " | ".join(f"{s} AP / FPR95 / AUROC" for s in settings) + " |",
+        "|---|" + "---|" * len(settings),
+    ]
+    with open(csv_path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["scenario", "setting", "AP", "FPR95", "AUROC", "n_anomaly", "n_normal"])
+        for run in sorted(result.per_scenario):
+            cells = []
+            for setting in settings:
+                metrics = result.per_scenario[run].get(setting)
+                if metrics is None:
+                    cells.append("")
+                    continue
+                s = metrics.compute()
+                cells.append(" / ".join(_percent(_number(s[k])) for k, _ in SCORES))
+                writer.writerow([run, setting, *(_number(s[k]) for k, _ in SCORES), s["n_anomaly"], s["n_normal"]])
+            lines.append(f"| {run} | " + " | ".join(cells) + " |")
+    text = "\n".join(lines) + "\n"
+    md_path.write_text(text)
+    return text
+
+
+def _setting_order(label: str) -> tuple[int, str]:
+    return (0 if label == "no mask" else 2 if label == "MNAD" else 1, label)
+
+
+def selected_curves(result: SweepResult, rows: list[dict[str, Any]]) -> dict[str, PixelMetrics]:
+    """Curves worth drawing: the best-AP configuration, the default row per mask setting, MNAD."""
+    curves: dict[str, PixelMetrics] = {}
+    scored = [c for c in result.metrics if result.metrics[c].n_anomaly]
+    if scored:
+        best = max(scored, key=lambda c: result.metrics[c].compute()["AP"])
+        curves[f"best: {_weights_label(result.rows[best.row])}, {result.setting_label(best)}"] = result.metrics[best]
+    if result.default_row is not None:
+        for config in sorted(result.metrics, key=lambda c: (c.segmenter or "", _mode_rank(c.mode))):
+            if config.row == result.default_row and config.mode in ("none", "mean"):
+                curves[f"{_weights_label(result.rows[config.row])}, {result.setting_label(config)}"] = result.metrics[
+                    config
+                ]
+    if result.baseline is not None:
+        curves["MNAD"] = result.baseline
+    return curves
+
+
+def write_report(result: SweepResult, out: str | Path, log_path: str | Path | None = None) -> Path:
+    """Write every report file into `out`; returns the index.md path."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows, baseline = table_rows(result), baseline_row(result)
+    stats = result.stats
+    summary = {
+        "log": str(log_path) if log_path else None,
+        "rows": rows,
+        "baseline": baseline,
+        "default_weights": None if result.default_row is None else _weights_label(result.rows[result.default_row]),
+        "per_scenario": {
+            run: {label: {k: _number(m.compute()[k]) for k, _ in SCORES} for label, m in per_run.items()}
+            for run, per_run in sorted(result.per_scenario.items())
+        },
+        "segmenters": result.segmenters,
+        "skipped_weight_rows": [_weights_label(result.rows[i]) for i in result.skipped_rows],
+        "log_stats": {k: v for k, v in vars(stats).items() if k != "segmenters"},
+        "sweep_seconds": round(result.seconds, 2),
+    }
+    (out / "results.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    table = write_table(rows, baseline, out / "table.md", out / "table.csv")
+    scenarios = scenario_table(result, out / "per_scenario.md", out / "per_scenario.csv")
+    plot_curves(selected_curves(result, rows), out / "pr_curves.png", out / "roc_curves.png")
+    overlay_files = []
+    for i, frame in enumerate(result.overlays):
+        name = f"overlay_{i:02d}.png"
+        title = f"{frame.run} #{frame.seq}: {frame.anomaly_pixels} anomaly pixels"
+        plot_overlay_grid(frame.images, title, out / name)
+        overlay_files.append((name, title))
+    index = _index_markdown(summary, table, scenarios, overlay_files)
+    (out / "index.md").write_text(index)
+    (out / "index.html").write_text(_index_html(summary, out, overlay_files))
+    return out / "index.md"
+
+
+def _log_lines(summary: dict[str, Any]) -> list[str]:
+    s = summary["log_stats"]
+    lines = [
+        f"- log: `{summary['log']}`" if summary["log"] else "- log: (in memory)",
+        f"- frames: {s['frames']} grouped from {s['messages']} messages ({s['decoded']} decoded); "
+        f"{s['duplicates']} duplicates, {s['late']} late, {s['bad']} undecodable",
+        f"- sweep time: {summary['sweep_seconds']} s for {len(summary['rows'])} configurations",
+        f"- default weights for the breakdown and pictures: {summary['default_weights']}",
+    ]
+    if s["truncated"]:
+        lines.append(f"- **log truncated**: {s['truncated']}")
+    if summary["skipped_weight_rows"]:
+        lines.append(f"- weight rows without their metrics in the log: {', '.join(summary['skipped_weight_rows'])}")
+    return lines
+
+
+def _index_markdown(summary: dict[str, Any], table: str, scenarios: str, overlays: list[tuple[str, str]]) -> str:
+    parts = ["# UMAD evaluation report", "", *_log_lines(summary), ""]
+    parts += ["## Ablation table", "", "Files: `results.json`, `table.md`, `table.csv`.", "", table]
+    parts += ["## Curves", "", "![precision-recall](pr_curves.png)", "![ROC](roc_curves.png)", ""]
+    parts += ["## Per scenario (default weights)", "", "Files: `per_scenario.md`, `per_scenario.csv`.", "", scenarios]
+    parts += ["## Frames with the largest anomalies", ""]
+    parts += [f"### {title}\n\n![{title}]({name})\n" for name, title in overlays] or ["(no frame with anomaly pixels)"]
+    return "\n".join(parts) + "\n"
+
+
+def _index_html(summary: dict[str, Any], out: Path, overlays: list[tuple[str, str]]) -> str:
+    def table_html(csv_path: Path) -> str:
+        with open(csv_path, newline="") as f:
+            rows = list(csv.reader(f))
+        head = "".join(f"<th>{html.escape(c)}</th>" for c in rows[0])
+        body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows[1:])
+        return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+    items = "".join(f"<li>{html.escape(line[2:])}</li>" for line in _log_lines(summary))
+    pictures = "".join(f"<h3>{html.escape(t)}</h3><img src='{n}' alt='{html.escape(t)}'>" for n, t in overlays)
+    return (
+        "<!doctype html><html><head><meta charset='utf-8'><title>UMAD evaluation report</title>"
+        "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:12px}"
+        "td,th{border:1px solid #ccc;padding:2px 6px}img{max-width:100%}</style></head><body>"
+        f"<h1>UMAD evaluation report</h1><ul>{items}</ul>"
+        f"<h2>Ablation table</h2>{table_html(out / 'table.csv')}"
+        "<h2>Curves</h2><img src='pr_curves.png' alt='precision-recall'><img src='roc_curves.png' alt='ROC'>"
+        f"<h2>Per scenario (default weights)</h2>{table_html(out / 'per_scenario.csv')}"
+        f"<h2>Frames with the largest anomalies</h2>{pictures}</body></html>\n"
+    )
