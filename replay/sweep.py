@@ -18,6 +18,7 @@ window apart); a message arriving later is counted as late and dropped.
 
 from __future__ import annotations
 
+import bisect
 import heapq
 import time
 from collections.abc import Iterator
@@ -30,6 +31,7 @@ from tqdm import tqdm
 
 from replay.log import LogError, read_log
 from umad_common.messages import MessageError, decode
+from umad_common.metrics.components import ComponentMetrics
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import fuse, refine, resize_nearest
 
@@ -88,12 +90,14 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
 
 
 def frames_from_log(path: str | Path, stats: LogStats, lag: int = 32) -> Iterator[FrameRecord]:
-    """Stream the log's frames, each once, after its run has moved `lag` frames on (or at the end).
+    """Stream the log's frames, each once, after `lag` newer frames of its run have appeared (or at the end).
+
+    Counting frames, not seq numbers, keeps this right when a run's seqs are sparse (every k-th frame).
 
     A truncated or corrupt log ends the stream at the last readable message; `stats.truncated` says why.
     """
     buffer: dict[tuple[str, int], FrameRecord] = {}
-    newest: dict[str, int] = {}
+    seqs_seen: dict[str, list[int]] = {}  # run -> every seq seen, sorted
     done: set[tuple[str, int]] = set()
     seen: set[tuple[str, str, int]] = set()
 
@@ -138,9 +142,12 @@ def frames_from_log(path: str | Path, stats: LogStats, lag: int = 32) -> Iterato
             continue
         record = buffer.setdefault(key, FrameRecord(msg.run, msg.seq))
         _fill(record, op, output, msg, stats)
-        if msg.seq > newest.get(msg.run, -1):
-            newest[msg.run] = msg.seq
-            yield from ready(msg.run, msg.seq - lag - 1)
+        run_seqs = seqs_seen.setdefault(msg.run, [])
+        position = bisect.bisect_left(run_seqs, msg.seq)
+        if position == len(run_seqs) or run_seqs[position] != msg.seq:
+            run_seqs.insert(position, msg.seq)
+            if len(run_seqs) > lag:
+                yield from ready(msg.run, run_seqs[-lag - 1])
     for run in sorted({k[0] for k in buffer}):
         yield from ready(run, max(k[1] for k in buffer if k[0] == run))
 
@@ -194,6 +201,16 @@ class SweepResult:
     segmenters: dict[str, str]  # op -> method
     skipped_rows: list[int]
     seconds: float = 0.0
+    components: dict[str, dict] = field(default_factory=dict)  # name -> ComponentMetrics.compute()
+
+    def row_label(self, row: int) -> str:
+        return weights_label(self.rows[row])
+
+    def setting_labels(self) -> list[str]:
+        """Every mask setting's label in table order: no mask, gt, unsupervised, SAM (mean, max, single)."""
+        rank = {"gt": 0, "sam": 2}
+        ops = sorted(self.segmenters, key=lambda op: (rank.get(self.segmenters[op], 1), op))
+        return ["no mask", *(f"{self.segmenters[op]} {mode}" for op in ops for mode in REFINE_MODES)]
 
     def setting_label(self, config: Config) -> str:
         if config.segmenter is None:
@@ -236,9 +253,7 @@ class Sweep:
             self._scenario(frame.run, "MNAD").update(frame.mnad, mnad_labels)
         if not frame.diffs:
             return
-        shape = max((m.shape for m in frame.diffs.values()), key=lambda s: (s[0] * s[1], s))
-        labels = resize_nearest(frame.truth, shape)
-        masks = {op: resize_nearest(m, shape) for op, m in sorted(frame.masks.items())}
+        shape, labels, masks = model_size_inputs(frame)
         usable = [i for i, row in enumerate(self.rows) if set(row) <= set(frame.diffs)]
         if self.default_row is None and usable:
             self.default_row = max(usable, key=lambda i: (len(self.rows[i]), i))
@@ -291,7 +306,7 @@ class Sweep:
         else:
             heapq.heapreplace(self._overlays, item)
 
-    def result(self, stats: LogStats, seconds: float = 0.0) -> SweepResult:
+    def result(self, stats: LogStats) -> SweepResult:
         overlays = [item[2] for item in sorted(self._overlays, key=lambda t: (-t[0], -t[1]))]
         return SweepResult(
             rows=self.rows,
@@ -305,14 +320,99 @@ class Sweep:
             stats=stats,
             segmenters=dict(stats.segmenters),
             skipped_rows=[i for i in range(len(self.rows)) if i not in self.rows_seen],
-            seconds=seconds,
         )
 
 
+def model_size_inputs(frame: FrameRecord) -> tuple[tuple[int, int], np.ndarray, dict[str, np.ndarray]]:
+    """The difference maps' (h, w) (the largest, should they differ) with labels and masks resized to it."""
+    shape = max((m.shape for m in frame.diffs.values()), key=lambda s: (s[0] * s[1], s))
+    labels = resize_nearest(frame.truth, shape)
+    masks = {op: resize_nearest(m, shape) for op, m in sorted(frame.masks.items())}
+    return shape, labels, masks
+
+
+def configuration_map(
+    frame: FrameRecord,
+    weights: dict[str, Fraction],
+    config: Config,
+    shape: tuple[int, int],
+    masks: dict[str, np.ndarray],
+) -> np.ndarray | None:
+    """One configuration's score map of a frame, or None when the frame lacks a map or mask it needs."""
+    if not set(weights) <= set(frame.diffs) or (config.segmenter is not None and config.segmenter not in masks):
+        return None
+    float_weights = {m: float(w) for m, w in weights.items()}
+    fused = fuse({m: frame.diffs[m] for m in float_weights}, float_weights, shape)
+    if config.segmenter is None:
+        return fused
+    return refine(fused, masks[config.segmenter], mode=config.mode, uncovered="keep")
+
+
+def component_configs(result: SweepResult) -> dict[str, Config]:
+    """Configurations worth component metrics: the best-AP one and the default row per mask setting."""
+    chosen: dict[str, Config] = {}
+    scored = [c for c, m in result.metrics.items() if m.n_anomaly and m.n_normal]
+    if scored:
+        best = max(scored, key=lambda c: (result.metrics[c].compute()["AP"], -c.row))
+        chosen[f"best AP: {weights_label(result.rows[best.row])}, {result.setting_label(best)}"] = best
+    for config in sorted(result.metrics, key=lambda c: (c.segmenter or "", c.mode)):
+        if config.row == result.default_row and config.mode in ("none", "mean") and config not in chosen.values():
+            chosen[f"{weights_label(result.rows[config.row])}, {result.setting_label(config)}"] = config
+    return chosen
+
+
+def weights_label(weights: dict[str, Fraction]) -> str:
+    """Short name of a weight row: `ssim`, `abs+ssim+perceptual (1/3)`, `all - temporal (1/4)`, `all (1/5)`."""
+    names = list(weights)
+    if len(names) == 1:
+        return names[0]
+    share = (
+        f"({Fraction(1, len(names))})"
+        if len(set(weights.values())) == 1
+        else "(" + ", ".join(map(str, weights.values())) + ")"
+    )
+    if set(names) == set(PAPER_METRICS):
+        return f"all {share}"
+    missing = [m for m in PAPER_METRICS if m not in names]
+    if len(missing) == 1 and set(names) <= set(PAPER_METRICS):
+        return f"all - {missing[0]} {share}"
+    return "+".join(names) + f" {share}"
+
+
+def component_pass(
+    path: str | Path, result: SweepResult, lag: int = 32, every: int = 1, progress: bool = True
+) -> dict[str, dict]:
+    """SegmentMeIfYouCan component metrics (a second read of the log) for `component_configs` and
+    MNAD, each at its best pixel-F1 threshold from the first pass."""
+    configs = component_configs(result)
+    metrics = {name: ComponentMetrics(result.metrics[c].best_f1_threshold()) for name, c in configs.items()}
+    if result.baseline is not None and result.baseline.n_anomaly:
+        metrics["MNAD"] = ComponentMetrics(result.baseline.best_f1_threshold())
+    for frame in tqdm(frames_from_log(path, LogStats(), lag), desc="components", unit="frame", disable=not progress):
+        if frame.truth is None or frame.seq % every:
+            continue
+        if frame.mnad is not None and "MNAD" in metrics:
+            metrics["MNAD"].update(frame.mnad, resize_nearest(frame.truth, frame.mnad.shape))
+        if not frame.diffs:
+            continue
+        shape, labels, masks = model_size_inputs(frame)
+        for name, config in configs.items():
+            score_map = configuration_map(frame, result.rows[config.row], config, shape, masks)
+            if score_map is not None:
+                metrics[name].update(score_map, labels)
+    return {name: m.compute() for name, m in metrics.items()}
+
+
 def sweep_log(
-    path: str | Path, lag: int = 32, every: int = 1, overlay_frames: int = 6, progress: bool = True
+    path: str | Path,
+    lag: int = 32,
+    every: int = 1,
+    overlay_frames: int = 6,
+    components: bool = True,
+    progress: bool = True,
 ) -> SweepResult:
-    """Compute every configuration's AP/FPR95/AUROC from one log (see the module docstring)."""
+    """Compute every configuration's AP/FPR95/AUROC from one log (see the module docstring); with
+    `components`, a second read adds component metrics for the headline configurations."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: log file not found; expected an MCAP file written by the recorder")
@@ -323,4 +423,8 @@ def sweep_log(
     sweep = Sweep(overlay_frames=overlay_frames, every=every)
     for frame in tqdm(frames_from_log(path, stats, lag), desc="sweep", unit="frame", disable=not progress):
         sweep.add(frame, stats.segmenters)
-    return sweep.result(stats, time.perf_counter() - start)
+    result = sweep.result(stats)
+    if components:
+        result.components = component_pass(path, result, lag, every, progress)
+    result.seconds = time.perf_counter() - start
+    return result

@@ -349,3 +349,79 @@ def test_operator_fails_early_and_loads_user_metric(tmp_path, monkeypatch):
     target, recon, preds, valid = random_frame()
     score = op.process(frame_message((target, recon, preds, valid)))["map"].arrays["map"]
     np.testing.assert_allclose(score, minmax(np.abs(target[..., 0] - recon[..., 0])), atol=1e-6)
+
+
+def write_generator_scenario(root, name: str, frames: int, seed: int):
+    """A tiny generator-layout drive whose label files (semantic, instance, depth, anomaly) are
+    undecodable: any attempt to read a label fails loudly."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    scenario = root / name
+    cam = "RGB-CAM(0, 0, 1.8)(0, 0, 0)_ab12"
+    lidar = "LIDAR(0, 0, 2.5)(0, 0, 0)_cd34"
+    poisoned = [
+        "SEMANTIC-CAM(0, 0, 1.8)(0, 0, 0)_ef56",
+        "INSTANCE-CAM(0, 0, 1.8)(0, 0, 0)_ab78",
+        "DEPTH_CAM(0, 0, 1.8)(0, 0, 0)_9a",
+    ]
+    for folder in [cam, lidar, "ACTION", "ROUTE_MAP", "ANOMALY", *poisoned]:
+        (scenario / folder).mkdir(parents=True)
+    for fid in range(1000, 1000 + frames):
+        cv2.imwrite(str(scenario / cam / f"{cam}_{fid}.png"), (rng.random((40, 60, 3)) * 255).astype(np.uint8))
+        np.save(scenario / lidar / f"{lidar}_{fid}.npy", rng.standard_normal((50, 4)).astype(np.float32))
+        (scenario / "ACTION" / f"ACTION_{fid}.csv").write_text(
+            "speed ; 18.0\nthrottle ; 0.5\nsteer ; 0.0\nbrake ; 0.0\n"
+        )
+        cv2.imwrite(str(scenario / "ROUTE_MAP" / f"ROUTE_MAP_{fid}.png"), np.zeros((192, 192), np.uint8))
+        (scenario / "ANOMALY" / f"ANOMALY_{fid}.csv").write_bytes(b"\xff\xfe not a label file")
+        for folder in poisoned:
+            (scenario / folder / f"{folder}_{fid}.png").write_bytes(b"not a png: labels must not be read")
+    return scenario
+
+
+def test_calibrate_uses_heldout_normal_drives_and_never_reads_labels(tmp_path, feature_file):
+    import argparse
+
+    from umad_common.commands import calibrate
+    from umad_common.datasets.anovox import AnoVoxScenario, DatasetError
+    from umad_common.models.world_model import WorldModel, WorldModelConfig, save_world_model
+
+    normal = tmp_path / "bench" / "normal"
+    write_generator_scenario(normal, "Scenario_a", 3, seed=0)
+    held = write_generator_scenario(normal, "Scenario_b", 5, seed=1)
+    with pytest.raises(DatasetError):
+        AnoVoxScenario(held)[0]  # the label files really are poison to a reader that opens them
+    config = WorldModelConfig(
+        image_height=32, image_width=48, image_channels=(8, 8), lidar_rows=16, lidar_width=32, lidar_channels=(8, 8),
+        lidar_embed=8, route_size=16, route_channels=(8,), route_embed=8, deter_dim=16, hidden_dim=16,
+    )  # fmt: skip
+    torch.manual_seed(0)
+    save_world_model(WorldModel(config), tmp_path / "wm", {"heldout_drives": ["Scenario_b"]})
+    out = tmp_path / "calibration.json"
+    args = argparse.Namespace(
+        data=tmp_path / "bench", world_model=tmp_path / "wm", features=feature_file, vgg_weights=None, metric=[],
+        out=out, frames=4, horizon=2, threads=1,
+    )  # fmt: skip
+    assert calibrate.run(args) == 0
+    calibration = load_calibration(out)
+    assert sorted(calibration.scales) == ["abs", "mse", "perceptual", "ssim", "temporal"]
+    assert calibration.info["drives"] == ["Scenario_b"] and calibration.info["frames"] == 4
+    assert calibration.stats["abs"]["frames"] == 4 and calibration.stats["temporal"]["frames"] == 3  # frame 0: none
+
+
+def test_train_features_command_reads_only_training_rgb(tmp_path):
+    import argparse
+
+    from umad_common.commands import train_features
+
+    normal = tmp_path / "bench" / "normal"
+    write_generator_scenario(normal, "Scenario_a", 4, seed=0)
+    write_generator_scenario(normal, "Scenario_b", 2, seed=1)
+    out = tmp_path / "features.safetensors"
+    args = argparse.Namespace(
+        data=tmp_path / "bench", out=out, epochs=1, seed=0, frames=100, batch_size=2, holdout=1, threads=1
+    )
+    assert train_features.run(args) == 0
+    model = load_feature_net(out)
+    assert model.config.training["frames"] == 4 and model.config.training["heldout_drives"] == ["Scenario_b"]

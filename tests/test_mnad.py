@@ -101,3 +101,24 @@ def test_operator_outputs_map_at_model_size(tmp_path):
     assert score_map.shape == (32, 48) and score_map.dtype == np.float32 and np.all(score_map >= 0)
     with pytest.raises(MnadWeightsError):
         MnadPredictor({"weights": "nope.safetensors"}, Context(base_dir=tmp_path))
+
+
+def test_train_command_reads_only_normal_drives(tmp_path):
+    from umad_common.cli import main as umad_main
+    from umad_common.datasets.anovox import AnoVoxFrame, EgoState, write_benchmark_scenario
+
+    def drive(n, seed):
+        rng = np.random.default_rng(seed)
+        for i in range(n):
+            rgb = rng.integers(0, 255, (64, 96, 3), dtype=np.uint8)
+            yield AnoVoxFrame(100 + i, rgb, None, None, None, np.zeros((64, 96), np.uint8), None, EgoState(), None)
+
+    write_benchmark_scenario(drive(3, 0), tmp_path / "normal", "Scenario_n1")
+    write_benchmark_scenario(drive(3, 1), tmp_path / "normal", "Scenario_n2")
+    write_benchmark_scenario(drive(5, 2), tmp_path / "anomalous", "Scenario_a1")
+    out = tmp_path / "model" / "mnad.safetensors"
+    args = ["train", "mnad", str(tmp_path), "--out", str(out), "--epochs", "1", "--batch-size", "3", "--seed", "1"]
+    assert umad_main(args) == 0
+    model, record = load_mnad(out)
+    assert record["training"]["frames"] == 6 and record["training"]["steps"] == 2
+    assert model.cfg.height == 128 and model.cfg.width == 192

@@ -13,6 +13,7 @@ from sklearn.metrics import average_precision_score, roc_auc_score
 from replay.sweep import Config, paper_weight_rows, sweep_log
 from umad_common.cli import main as umad_main
 from umad_common.messages import Message, encode
+from umad_common.metrics.components import component_metrics
 from umad_common.viz.report import write_report
 
 H, W, h, w = 16, 24, 8, 12  # camera / truth size, model size
@@ -186,6 +187,12 @@ def test_baseline_and_per_scenario(result, log_and_truth):
     assert result.default_row == 14
 
 
+def test_component_metrics_of_mnad_equal_direct(result, log_and_truth):
+    frames = [(t["mnad"], t["truth_full"]) for _, _, t in log_and_truth[1]]
+    assert result.components["MNAD"] == component_metrics(frames)
+    assert any(name.startswith("best AP") for name in result.components)
+
+
 def test_truncated_log_stops_at_last_readable_message(log_and_truth, tmp_path):
     data = log_and_truth[0].read_bytes()
     cut = tmp_path / "cut.mcap"
@@ -212,6 +219,7 @@ def test_report_files(result, log_and_truth, tmp_path):
         assert (out / name).is_file(), name
     summary = json.loads((out / "results.json").read_text())
     assert len(summary["rows"]) == 105 and summary["baseline"]["name"] == "MNAD"
+    assert "MNAD" in summary["components"] and (out / "components.md").is_file()
     assert {"weights", "masks", "AP", "FPR95", "AUROC"} <= set(summary["rows"][0])
     table = (out / "table.md").read_text()
     assert table.count("\n| ") == 106 and "**" in table
@@ -226,3 +234,35 @@ def test_cli(log_and_truth, tmp_path, capsys):
     )
     summary = json.loads((tmp_path / "r" / "results.json").read_text())
     assert {r["frames"] for r in summary["rows"]} == {6}
+
+
+def test_sparse_seqs_and_late_parts_complete_by_frame_count(tmp_path):
+    """Seqs 0, 10, 20, ... (every 10th frame) with each frame's truth arriving two frames late."""
+    frames = list(synthetic_frames(runs=("r",), n=6, seed=1))
+    path = tmp_path / "sparse.mcap"
+    with open(path, "wb") as f:
+        writer = Writer(f, compression=CompressionType.NONE)
+        writer.start(profile="umad", library="test")
+        channels, delayed = {}, []
+        for _, seq, msgs, _ in frames:
+            for op, output, arrays, meta in msgs:
+                item = (op, output, Message("r", 10 * seq, 0, op, meta, arrays))
+                if output == "truth":
+                    delayed.append(item)
+                else:
+                    _write(writer, channels, *item)
+            while len(delayed) > 2:
+                _write(writer, channels, *delayed.pop(0))
+        for item in delayed:
+            _write(writer, channels, *item)
+        writer.finish()
+    result = sweep_log(path, lag=3, progress=False, overlay_frames=0, components=False)
+    assert result.stats.frames == 6 and result.stats.late == 0
+    assert set(result.frames.values()) == {6}
+
+
+def _write(writer, channels, op, output, msg):
+    key = f"umad/test/{op}/{output}"
+    if key not in channels:
+        channels[key] = writer.register_channel(key, "msgpack", 0)
+    writer.add_message(channels[key], msg.seq, encode(msg), msg.seq, msg.seq)

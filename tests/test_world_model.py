@@ -27,8 +27,7 @@ torch.set_num_threads(1)
 TINY = dict(
     image_height=32,
     image_width=64,
-    image_channels=(4, 4, 8, 8, 8),
-    image_embed=16,
+    image_channels=(4, 4, 8),
     lidar_rows=32,
     lidar_width=64,
     lidar_channels=(4, 4, 8, 8, 8),
@@ -37,7 +36,9 @@ TINY = dict(
     route_channels=(4, 4, 4, 4),
     route_embed=8,
     deter_dim=16,
-    stoch_dim=4,
+    stoch_channels=2,
+    context_channels=4,
+    side_channels=4,
     hidden_dim=16,
 )
 
@@ -77,7 +78,7 @@ def test_observe_and_imagine_shapes():
 
 
 def test_config_rejects_image_size_not_divisible():
-    with pytest.raises(ValueError, match="divisible by 32"):
+    with pytest.raises(ValueError, match="divisible by 16"):
         WorldModelConfig(image_height=100)
 
 
@@ -207,7 +208,7 @@ def test_predictor_fails_early_on_missing_or_mismatched_weights(tmp_path, weight
     with pytest.raises(WeightsError, match="not found"):
         WorldModelPredictor({"model": str(tmp_path / "nothing.safetensors")})
     meta = json.loads(weights.with_suffix(".json").read_text())
-    meta["config"]["stoch_dim"] = 6
+    meta["config"]["stoch_channels"] = 3
     weights.with_suffix(".json").write_text(json.dumps(meta))
     with pytest.raises(WeightsError, match="expected"):
         WorldModelPredictor({"model": str(weights)})

@@ -88,6 +88,11 @@ class Keys:
         return f"{self.root}/_live/{op}/{replica}"
 
     @property
+    def left(self) -> str:
+        """Where a replica that stops on purpose says goodbye before its token goes."""
+        return f"{self.root}/_left"
+
+    @property
     def live_all(self) -> str:
         return f"{self.root}/_live/**"
 

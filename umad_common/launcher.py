@@ -17,13 +17,14 @@ import subprocess
 import sys
 import threading
 import time
+from collections import defaultdict, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
 
 from replay.log import McapRecorder
-from umad_common.bus import Keys, TlsConfig, cleanup_stale_shm, open_hub
+from umad_common.bus import Keys, TlsConfig, cleanup_stale_shm, open_client
 from umad_common.graph import Graph, GraphError, OperatorSpec, load_graph
 from umad_common.runtime import EXIT_CONFIG
 
@@ -63,7 +64,11 @@ class Launcher:
         allow_truncated: bool = False,
         max_restarts: int = 3,
         start_hub: bool = True,
+        quiet: bool = False,
     ):
+        self.quiet = quiet
+        self.hub_replica: Replica | None = None
+        self.tails: dict[str, deque[str]] = defaultdict(lambda: deque(maxlen=30))
         self.graph = graph
         self.graph_file = Path(graph_file)
         self.hub = hub or graph.spec.hub
@@ -89,6 +94,15 @@ class Launcher:
                             cmd.append("--allow-truncated")
                 self.replicas.append(Replica(spec.id, index, cmd, spec.id in sources))
 
+    def _hub_command(self) -> list[str]:
+        cmd = [sys.executable, "-m", "umad_common.hub", "--listen", self.hub]
+        tls = self.graph.spec.tls
+        if tls is not None:
+            for flag, value in (("--root-ca", tls.root_ca), ("--cert", tls.cert), ("--key", tls.key)):
+                if value:
+                    cmd += [flag, str(self.graph.base_dir / value)]
+        return cmd
+
     def _command(self, graph: Graph, graph_file: Path, spec: OperatorSpec, index: int) -> list[str]:
         """The command line of one replica, in the operator's own Python environment if it names one."""
         python = spec.python or sys.executable
@@ -104,6 +118,10 @@ class Launcher:
     # -- processes ----------------------------------------------------------------------------------
 
     def _say(self, name: str, line: str) -> None:
+        self.tails[name].append(line.rstrip())
+        if self.quiet:
+            log.debug("[%s] %s", name, line.rstrip())
+            return
         with self._print_lock:
             sys.stdout.write(f"[{name}] {line}" if line.endswith("\n") else f"[{name}] {line}\n")
             sys.stdout.flush()
@@ -150,6 +168,15 @@ class Launcher:
         rep.proc = None
         rep.restart_at = time.monotonic() + delay
 
+    def _watch_hub(self) -> None:
+        """The hub is restarted whenever it dies; clients reconnect to it on their own."""
+        hub = self.hub_replica
+        if hub is None or hub.proc is None or hub.proc.poll() is None:
+            return
+        hub.restarts += 1
+        self._say("hub", f"exited with {hub.proc.returncode}; restarting (restart {hub.restarts})")
+        self._spawn(hub)
+
     def _terminate_all(self) -> None:
         for rep in self.replicas:
             if rep.proc and rep.proc.poll() is None:
@@ -178,7 +205,10 @@ class Launcher:
 
         previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
         tls = TlsConfig(**self.graph.spec.tls.model_dump()) if self.graph.spec.tls else None
-        hub = open_hub(self.hub, tls) if self.start_hub else None
+        if self.start_hub:
+            self.hub_replica = Replica("hub", 0, self._hub_command(), False)
+            self._spawn(self.hub_replica)
+        hub = open_client(self.hub, tls)
         recorder = None
         subscribers = []
         try:
@@ -203,8 +233,13 @@ class Launcher:
             if recorder is not None:
                 recorder.close()
                 log.info("recorded %d messages to %s", recorder.count, self.record)
-            if hub is not None:
-                hub.close()
+            hub.close()
+            if self.hub_replica is not None and self.hub_replica.proc is not None:
+                self.hub_replica.proc.send_signal(signal.SIGTERM)
+                try:
+                    self.hub_replica.proc.wait(timeout=STOP_GRACE_S)
+                except subprocess.TimeoutExpired:
+                    self.hub_replica.proc.kill()
             cleanup_stale_shm()
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
@@ -214,10 +249,14 @@ class Launcher:
         sources = [r for r in self.replicas if r.is_source]
         while not self._stop.is_set():
             self._apply_control()
+            self._watch_hub()
             for rep in self.replicas:
                 self._watch(rep)
             if any(r.failed for r in self.replicas):
                 failed = [r.name for r in self.replicas if r.failed]
+                if self.quiet:
+                    for name in failed:
+                        sys.stderr.write("".join(f"[{name}] {line}\n" for line in self.tails[name]))
                 log.error("graph failed: %s", ", ".join(failed))
                 return 1
             if sources and all(r.finished for r in sources):
@@ -276,7 +315,7 @@ class Launcher:
         recorder.write(key, sample.payload.to_bytes())
 
     def _print_summary(self) -> None:
-        if not self.stats:
+        if not self.stats or self.quiet:
             return
         head = f"{'replica':<24}{'in':>8}{'out':>8}{'errors':>8}{'bad':>6}{'dups':>6}{'p50 ms':>9}{'p99 ms':>9}"
         lines = [head]

@@ -47,6 +47,7 @@ MAX_PENDING_FRAMES = 256
 REPUBLISH_INTERVAL_S = 1.0
 STATS_INTERVAL_S = 1.0
 LIVE_WAIT_S = 60.0
+LOST_GRACE_S = 15.0
 EXIT_CONFIG = 3  # an operator that exits with this failed on its configuration: restarting cannot help
 
 
@@ -76,6 +77,7 @@ class Stats:
     dropped: int = 0
     retransmits: int = 0
     param_changes: int = 0
+    busy_s: float = 0.0  # sources: first send to last ack
     latency: LatencyWindow = field(default_factory=LatencyWindow)
 
     def snapshot(self, queue_depth: int) -> dict[str, Any]:
@@ -146,6 +148,51 @@ class FrameJoiner:
         return ready
 
 
+class Membership:
+    """Which replicas of which operators are in the graph now, from liveliness tokens.
+
+    A token that vanishes without a goodbye (a crash, or the hub restarting under everyone) is kept
+    for `grace_s`: waiting a little for a restarted replica beats completing frames without its
+    output. A replica that stops on purpose says so on the `_left` key first and drops out at once.
+    """
+
+    def __init__(self, grace_s: float = LOST_GRACE_S):
+        self.grace_s = grace_s
+        self.live: dict[str, set[str]] = defaultdict(set)
+        self.lost: dict[tuple[str, str], float] = {}
+        self.left: set[tuple[str, str]] = set()
+
+    def put(self, op: str, rep: str) -> None:
+        self.live[op].add(rep)
+        self.lost.pop((op, rep), None)
+        self.left.discard((op, rep))
+
+    def delete(self, op: str, rep: str) -> None:
+        self.live[op].discard(rep)
+        if (op, rep) in self.left:
+            self.left.discard((op, rep))
+        else:
+            self.lost[(op, rep)] = time.monotonic()
+
+    def leave(self, op: str, rep: str) -> None:
+        if self.lost.pop((op, rep), None) is None:
+            self.left.add((op, rep))
+
+    def expire(self) -> bool:
+        """Forget replicas lost longer than the grace period; True if any was forgotten."""
+        now = time.monotonic()
+        gone = [k for k, t in self.lost.items() if now - t > self.grace_s]
+        for k in gone:
+            del self.lost[k]
+        return bool(gone)
+
+    def replicas(self, op: str) -> set[str]:
+        return self.live.get(op, set()) | {rep for (o, rep) in self.lost if o == op}
+
+    def ops(self) -> set[str]:
+        return {op for op, reps in self.live.items() if reps} | {op for op, _ in self.lost}
+
+
 class OutputCache:
     """Recent outputs by `(run, seq)`: a duplicate input re-publishes these bytes, never recomputes."""
 
@@ -204,7 +251,7 @@ class OperatorRuntime:
         self.operator: Operator = self.cls(self.spec.params, context)
         self.data_q: queue.Queue = queue.Queue(maxsize=64)
         self.ctl_q: queue.Queue = queue.Queue()
-        self.live: dict[str, set[str]] = defaultdict(set)  # op id -> live replica ids
+        self.members = Membership()
         self.publishers = {
             out: session.declare_publisher(
                 self.keys.data(op_id, out), congestion_control=zenoh.CongestionControl.BLOCK
@@ -233,6 +280,9 @@ class OperatorRuntime:
             self.session.declare_subscriber(self.keys.control(self.op_id), lambda s: self.ctl_q.put(("ctl", s)))
         )
         self._subscribers.append(
+            self.session.declare_subscriber(self.keys.left, lambda s: self.ctl_q.put(("left", s)))
+        )
+        self._subscribers.append(
             self.session.liveliness().declare_subscriber(
                 self.keys.live_all, lambda s: self.ctl_q.put(("live", s)), history=True
             )
@@ -244,9 +294,9 @@ class OperatorRuntime:
 
     def _owns(self, seq: int) -> bool:
         """Replicas split frames by seq over the sorted live replica set."""
-        if self.spec.replicas == 1 and len(self.live.get(self.op_id, ())) <= 1:
+        replicas = sorted(self.members.replicas(self.op_id) | {self.replica_id})
+        if len(replicas) == 1:
             return True
-        replicas = sorted(self.live.get(self.op_id, set()) | {self.replica_id})
         return replicas[seq % len(replicas)] == self.replica_id
 
     def _expected(self) -> dict[str, set[str]]:
@@ -254,14 +304,14 @@ class OperatorRuntime:
         for port in self.cls.inputs:
             if port.many:
                 op_pat = self.spec.inputs[port.name].partition("/")[0]
-                expected[port.name] = {op for op, reps in self.live.items() if reps and fnmatch.fnmatchcase(op, op_pat)}
+                expected[port.name] = {op for op in self.members.ops() if fnmatch.fnmatchcase(op, op_pat)}
         return expected
 
     # -- service messages ---------------------------------------------------------------------------
 
     def _handle_service(self) -> bool:
         """Apply queued control and liveliness events; True when the set of live operators changed."""
-        changed = False
+        changed = self.members.expire()
         while True:
             try:
                 kind, sample = self.ctl_q.get_nowait()
@@ -270,10 +320,17 @@ class OperatorRuntime:
             if kind == "live":
                 op, rep = self.keys.parse_live(str(sample.key_expr))
                 if sample.kind == zenoh.SampleKind.PUT:
-                    self.live[op].add(rep)
+                    self.members.put(op, rep)
                 else:
-                    self.live[op].discard(rep)
+                    self.members.delete(op, rep)
                 changed = True
+            elif kind == "left":
+                try:
+                    note = msgpack.unpackb(sample.payload.to_bytes())
+                    self.members.leave(str(note["op"]), str(note["replica"]))
+                    changed = True
+                except Exception:
+                    self.stats.bad_messages += 1
             else:
                 self._apply_control(sample.payload.to_bytes())
 
@@ -332,21 +389,20 @@ class OperatorRuntime:
 
     def run(self) -> None:
         self._subscribe_service()
-        if isinstance(self.operator, Source):
-            token = self.session.liveliness().declare_token(self.keys.live(self.op_id, self.replica_id))
-            try:
-                SourceDriver(self).run()
-            finally:
-                token.undeclare()
-            return
-        self._subscribe_inputs()
+        if not isinstance(self.operator, Source):
+            self._subscribe_inputs()
         token = self.session.liveliness().declare_token(self.keys.live(self.op_id, self.replica_id))
-        self.log.info("ready: %s -> %s", dict(self.spec.inputs), list(self.cls.outputs))
         try:
+            if isinstance(self.operator, Source):
+                SourceDriver(self).run()
+                return
+            self.log.info("ready: %s -> %s", dict(self.spec.inputs), list(self.cls.outputs))
             self._transform_loop()
         finally:
+            self.session.put(self.keys.left, msgpack.packb({"op": self.op_id, "replica": self.replica_id}))
             token.undeclare()
             self._publish_stats(force=True)
+        if not isinstance(self.operator, Source):
             self.log.info("stopped after %d frames (%d errors, %d bad messages)", self.stats.frames_in, self.stats.errors, self.stats.bad_messages)
 
     def _transform_loop(self) -> None:
@@ -476,7 +532,7 @@ class SourceDriver:
         current: str | None = None
         count = 0
         last_stamp = 0
-        next_due = time.monotonic()
+        next_due = started = time.monotonic()
         if rt.replay_log:
             from replay.log_source import recorded_frames
 
@@ -506,6 +562,7 @@ class SourceDriver:
             last_stamp = sf.stamp_ns
         if current is not None and not rt.shutdown.is_set():
             self._end_run(current, count, last_stamp)
+        rt.stats.busy_s = time.monotonic() - started
         rt._publish_stats(force=True)
         rt.log.info("source finished: %d frames sent, %d retransmits", sent, rt.stats.retransmits)
 
@@ -515,7 +572,7 @@ class SourceDriver:
         deadline = time.monotonic() + LIVE_WAIT_S
         while not self.rt.shutdown.is_set():
             self.rt._handle_service()
-            missing = {op for op in wanted if not self.rt.live.get(op)}
+            missing = wanted - self.rt.members.ops()
             if not missing:
                 time.sleep(0.2)  # let liveliness-triggered subscriptions settle at the hub
                 return

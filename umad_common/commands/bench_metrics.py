@@ -84,7 +84,12 @@ def bench_metrics(n_pixels: int = 10**7, seed: int = 0) -> dict[str, Any]:
     mib = 1024 * 1024
     return {
         "n_pixels": n_pixels,
-        "umad": {"seconds": round(our_seconds, 3), "peak_mib": round(our_peak / mib, 1), "AP": ours["AP"], "AUROC": ours["AUROC"]},
+        "umad": {
+            "seconds": round(our_seconds, 3),
+            "peak_mib": round(our_peak / mib, 1),
+            "AP": ours["AP"],
+            "AUROC": ours["AUROC"],
+        },
         "sklearn": {
             "seconds": round(their_seconds, 3),
             "peak_mib": round(their_peak / mib, 1),

@@ -60,8 +60,9 @@ def sha256(path: Path) -> str:
 def calibration_drives(data: Path, record: dict) -> tuple[list[Path], str]:
     """The drives to calibrate on and why: the model's held-out normal drives when it names them."""
     from umad_common.datasets.anovox import find_scenarios
+    from umad_common.training.train_features import normal_root
 
-    root = data / "normal" if (data / "normal").is_dir() else data
+    root = normal_root(data)
     drives = find_scenarios(root)
     if not drives:
         raise SystemExit(f"{root}: no Scenario_* folders; expected AnoVox normal drives")
@@ -78,14 +79,15 @@ def calibration_drives(data: Path, record: dict) -> tuple[list[Path], str]:
 
 
 def sensor_frames(drive: Path, every: int, limit: int) -> Iterator:
-    """Frames of one drive as the replayer sends them: camera, lidar, ego and route only."""
+    """Frames of one drive as the replayer sends them: camera, lidar, ego and route only (the
+    reader is blind to label folders, so no label file is ever opened)."""
     import numpy as np
 
-    from umad_common.datasets.anovox import AnoVoxScenario
     from umad_common.messages import Message
     from umad_common.operator import Frame
+    from umad_common.training.train_features import label_free_scenario
 
-    scenario = AnoVoxScenario(drive, every=every)
+    scenario = label_free_scenario(drive, every=every)
     for seq in range(min(len(scenario), limit)):
         item = scenario[seq]
         ego = item.ego

@@ -35,7 +35,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.every < 1 or args.lag < 0 or args.overlays < 0:
         raise SystemExit("--every must be >= 1, --lag and --overlays >= 0")
-    result = sweep_log(args.log, lag=args.lag, every=args.every, overlay_frames=args.overlays)
+    result = sweep_log(
+        args.log, lag=args.lag, every=args.every, overlay_frames=args.overlays, components=not args.no_components
+    )
     if result.stats.truncated:
         log.warning("%s", result.stats.truncated)
     if not result.metrics and result.baseline is None:

@@ -22,6 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--frames", type=int, default=1200, help="at most this many frames, spread over all scenarios (default 1200)"
     )
     parser.add_argument("--batch-size", type=int, default=12, help="frames per step (default 12)")
+    parser.add_argument(
+        "--holdout", type=int, default=1, help="last N normal drives left out, as the world model (default 1)"
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
 
 
@@ -33,12 +36,14 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.suffix != ".safetensors":
         raise SystemExit(f"--out {args.out}: expected a .safetensors file name")
-    if args.epochs < 1 or args.frames < 1 or args.batch_size < 2:
-        raise SystemExit("--epochs and --frames must be >= 1, --batch-size >= 2")
+    if args.epochs < 1 or args.frames < 1 or args.batch_size < 2 or args.holdout < 0:
+        raise SystemExit("--epochs and --frames must be >= 1, --batch-size >= 2, --holdout >= 0")
     torch.set_num_threads(args.threads)
-    cfg = FeatureTrainingConfig(epochs=args.epochs, seed=args.seed, max_frames=args.frames, batch_size=args.batch_size)
-    frames = load_normal_rgb(args.data, cfg.size, cfg.max_frames)
-    model = train_feature_net(frames, cfg, data_name=str(args.data))
+    cfg = FeatureTrainingConfig(
+        epochs=args.epochs, seed=args.seed, max_frames=args.frames, batch_size=args.batch_size, holdout=args.holdout
+    )
+    frames, heldout = load_normal_rgb(args.data, cfg)
+    model = train_feature_net(frames, cfg, data_name=str(args.data), heldout=heldout)
     save_feature_net(model, args.out)
     log.info("wrote %s (+ %s), %s", args.out, args.out.with_suffix(".json").name, model.config.training)
     return 0

@@ -37,8 +37,8 @@ from torch import nn
 class WorldModelConfig:
     image_height: int = 128  # camera resized (no crop) to image_height x image_width
     image_width: int = 192
-    image_channels: tuple[int, ...] = (16, 32, 64, 64, 64)  # conv widths, one stride-2 stage each
-    image_embed: int = 256  # image embedding size
+    image_channels: tuple[int, ...] = (16, 32, 64, 64)  # conv widths, one stride-2 stage each; the
+    #   latent grid is image size / 2**len(image_channels) (8 x 12 by default)
     lidar_rows: int = 64  # range image rows = lidar channels
     lidar_width: int = 256  # range image columns (360 degrees of azimuth)
     lidar_fov_up: float = 15.0  # degrees above the horizon covered by the top row
@@ -50,9 +50,11 @@ class WorldModelConfig:
     route_channels: tuple[int, ...] = (16, 32, 32, 32)
     route_embed: int = 64
     speed_scale: float = 5.0  # speed input = speed_mps / speed_scale
-    deter_dim: int = 256  # GRU state h
-    stoch_dim: int = 32  # Gaussian latent z: the only per-frame path from the observation
-    hidden_dim: int = 256  # width of the prior / posterior / transition MLPs
+    deter_dim: int = 256  # GRU state h (vector): the memory of the drive so far
+    stoch_channels: int = 4  # Gaussian latent z, stoch_channels x grid: the only per-frame path from the image
+    context_channels: int = 16  # h projected onto the latent grid for the prior, posterior and decoder
+    side_channels: int = 16  # lidar + route + speed embedding, broadcast onto the latent grid
+    hidden_dim: int = 256  # width of the transition MLP (and channels of the prior / posterior convs / 4)
     min_std: float = 0.1  # floor of the latent standard deviation
     decode_lidar: bool = True  # also reconstruct the lidar range channel (auxiliary loss)
     frame_step: int = 1  # dataset frames per model step the model was trained with
@@ -71,6 +73,16 @@ class WorldModelConfig:
             raise ValueError(f"lidar range image {self.lidar_rows}x{self.lidar_width} must be divisible by {lidar_factor}")
         if self.route_size % 2 ** len(self.route_channels):
             raise ValueError(f"route_size {self.route_size} must be divisible by {2 ** len(self.route_channels)}")
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        """(rows, columns) of the latent grid."""
+        stages = len(self.image_channels)
+        return self.image_height >> stages, self.image_width >> stages
+
+    @property
+    def stoch_dim(self) -> int:
+        return self.stoch_channels * self.grid[0] * self.grid[1]
 
     @property
     def state_dim(self) -> int:
@@ -152,16 +164,32 @@ def action_of(throttle: float, brake: float, steer: float) -> np.ndarray:
 # Building blocks
 
 
-class ConvEncoder(nn.Module):
-    """(B, C, H, W) -> (B, embed): stride-2 convolutions, then one linear layer."""
+def conv_stack(in_channels: int, channels: tuple[int, ...]) -> nn.Sequential:
+    """Stride-2 4x4 convolutions: (B, C, H, W) -> (B, channels[-1], H / 2^k, W / 2^k)."""
+    layers: list[nn.Module] = []
+    for out_channels in channels:
+        layers += [nn.Conv2d(in_channels, out_channels, 4, stride=2, padding=1), nn.SiLU()]
+        in_channels = out_channels
+    return nn.Sequential(*layers)
+
+
+def deconv_stack(channels: tuple[int, ...], out_channels: int) -> nn.Sequential:
+    """Stride-2 4x4 transposed convolutions from channels[0] up to out_channels (no final activation)."""
+    layers: list[nn.Module] = []
+    for i, in_channels in enumerate(channels):
+        last = i == len(channels) - 1
+        layers.append(nn.ConvTranspose2d(in_channels, out_channels if last else channels[i + 1], 4, stride=2, padding=1))
+        if not last:
+            layers.append(nn.SiLU())
+    return nn.Sequential(*layers)
+
+
+class VectorEncoder(nn.Module):
+    """(B, C, H, W) -> (B, embed): a conv stack, then one linear layer (lidar and route)."""
 
     def __init__(self, in_channels: int, channels: tuple[int, ...], height: int, width: int, embed: int):
         super().__init__()
-        layers: list[nn.Module] = []
-        for out_channels in channels:
-            layers += [nn.Conv2d(in_channels, out_channels, 4, stride=2, padding=1), nn.SiLU()]
-            in_channels = out_channels
-        self.convs = nn.Sequential(*layers)
+        self.convs = conv_stack(in_channels, channels)
         flat = channels[-1] * (height >> len(channels)) * (width >> len(channels))
         self.out = nn.Sequential(nn.Linear(flat, embed), nn.LayerNorm(embed), nn.SiLU())
 
@@ -169,30 +197,22 @@ class ConvEncoder(nn.Module):
         return self.out(self.convs(x).flatten(1))
 
 
-class ConvDecoder(nn.Module):
-    """(B, state) -> (B, out_channels, H, W): one linear layer to a small grid, then stride-2
-    transposed convolutions; the grid (channels[0] x H/2^k x W/2^k) is the whole image bottleneck."""
+class VectorDecoder(nn.Module):
+    """(B, state) -> (B, out_channels, H, W): one linear layer to a small grid, then a deconv stack."""
 
     def __init__(self, state_dim: int, channels: tuple[int, ...], height: int, width: int, out_channels: int):
         super().__init__()
         self.grid = (channels[0], height >> len(channels), width >> len(channels))
         self.inp = nn.Linear(state_dim, self.grid[0] * self.grid[1] * self.grid[2])
-        layers: list[nn.Module] = []
-        for i, in_channels in enumerate(channels):
-            last = i == len(channels) - 1
-            next_channels = out_channels if last else channels[i + 1]
-            layers.append(nn.ConvTranspose2d(in_channels, next_channels, 4, stride=2, padding=1))
-            if not last:
-                layers.append(nn.SiLU())
-        self.deconvs = nn.Sequential(*layers)
+        self.deconvs = deconv_stack(channels, out_channels)
 
     def forward(self, state: torch.Tensor) -> torch.Tensor:
-        x = F.silu(self.inp(state)).view(-1, *self.grid)  # (B, C0, h0, w0)
-        return self.deconvs(x)
+        return self.deconvs(F.silu(self.inp(state)).view(-1, *self.grid))  # (B, C0, h0, w0) -> (B, out, H, W)
 
 
-def mlp(in_dim: int, hidden: int, out_dim: int) -> nn.Sequential:
-    return nn.Sequential(nn.Linear(in_dim, hidden), nn.LayerNorm(hidden), nn.SiLU(), nn.Linear(hidden, out_dim))
+def grid_head(in_channels: int, hidden: int, out_channels: int) -> nn.Sequential:
+    """Per-cell Gaussian parameters on the latent grid (3x3 conv, then 1x1)."""
+    return nn.Sequential(nn.Conv2d(in_channels, hidden, 3, padding=1), nn.SiLU(), nn.Conv2d(hidden, out_channels, 1))
 
 
 class Observation(NamedTuple):
@@ -206,7 +226,7 @@ class Observation(NamedTuple):
 
 class State(NamedTuple):
     h: torch.Tensor  # (..., deter_dim) deterministic path
-    z: torch.Tensor  # (..., stoch_dim) stochastic latent
+    z: torch.Tensor  # (..., stoch_dim) stochastic latent, the grid (stoch_channels, rows, cols) flattened
 
 
 class ObserveResult(NamedTuple):
@@ -232,19 +252,24 @@ class WorldModel(nn.Module):
     def __init__(self, config: WorldModelConfig):
         super().__init__()
         self.config = c = config
-        self.image_encoder = ConvEncoder(3, c.image_channels, c.image_height, c.image_width, c.image_embed)
-        self.lidar_encoder = ConvEncoder(4, c.lidar_channels, c.lidar_rows, c.lidar_width, c.lidar_embed)
-        self.route_encoder = ConvEncoder(1, c.route_channels, c.route_size, c.route_size, c.route_embed)
-        embed_dim = c.image_embed + c.lidar_embed + c.route_embed + 1  # + speed
+        rows, cols = c.grid
+        head = c.hidden_dim // 4
+        self.image_encoder = conv_stack(3, c.image_channels)  # (B, C, rows, cols)
+        self.lidar_encoder = VectorEncoder(4, c.lidar_channels, c.lidar_rows, c.lidar_width, c.lidar_embed)
+        self.route_encoder = VectorEncoder(1, c.route_channels, c.route_size, c.route_size, c.route_embed)
+        self.side = nn.Linear(c.lidar_embed + c.route_embed + 1, c.side_channels)  # + speed
+        self.context = nn.Linear(c.deter_dim, c.context_channels * rows * cols)
         self.transition_input = nn.Sequential(nn.Linear(c.stoch_dim + 2, c.hidden_dim), nn.SiLU())
         self.gru = nn.GRUCell(c.hidden_dim, c.deter_dim)
-        self.prior_net = mlp(c.deter_dim, c.hidden_dim, 2 * c.stoch_dim)
-        self.posterior_net = mlp(c.deter_dim + embed_dim, c.hidden_dim, 2 * c.stoch_dim)
-        image_dec = tuple(reversed(c.image_channels))
-        self.image_decoder = ConvDecoder(c.state_dim, image_dec, c.image_height, c.image_width, 3)
+        self.prior_net = grid_head(c.context_channels, head, 2 * c.stoch_channels)
+        embed_channels = c.image_channels[-1] + c.side_channels
+        self.posterior_net = grid_head(c.context_channels + embed_channels, head, 2 * c.stoch_channels)
+        decoder_channels = tuple(reversed(c.image_channels))
+        self.decoder_input = nn.Conv2d(c.context_channels + c.stoch_channels, decoder_channels[0], 3, padding=1)
+        self.image_decoder = deconv_stack(decoder_channels, 3)
         if c.decode_lidar:
             lidar_dec = tuple(reversed(c.lidar_channels))
-            self.lidar_decoder = ConvDecoder(c.state_dim, lidar_dec, c.lidar_rows, c.lidar_width, 1)
+            self.lidar_decoder = VectorDecoder(c.state_dim, lidar_dec, c.lidar_rows, c.lidar_width, 1)
 
     # -- pieces ---------------------------------------------------------------------------------
 
@@ -254,18 +279,23 @@ class WorldModel(nn.Module):
         return State(weight.new_zeros(batch, self.config.deter_dim), weight.new_zeros(batch, self.config.stoch_dim))
 
     def embed(self, obs: Observation) -> torch.Tensor:
-        """(B, T, ...) observations -> (B, T, embed_dim)."""
+        """(B, T, ...) observations -> (B, T, C_image + side_channels, rows, cols) on the latent grid."""
         b, t = obs.rgb.shape[:2]
-        parts = [
-            self.image_encoder(obs.rgb.flatten(0, 1) - 0.5),
-            self.lidar_encoder(obs.lidar.flatten(0, 1)),
-            self.route_encoder(obs.route.flatten(0, 1) - 0.5),
-            obs.speed.flatten(0, 1),
-        ]
-        return torch.cat(parts, dim=-1).view(b, t, -1)
+        image = self.image_encoder(obs.rgb.flatten(0, 1) - 0.5)  # (BT, C, rows, cols)
+        side = torch.cat(
+            [self.lidar_encoder(obs.lidar.flatten(0, 1)), self.route_encoder(obs.route.flatten(0, 1) - 0.5), obs.speed.flatten(0, 1)],
+            dim=-1,
+        )
+        side = self.side(side)[:, :, None, None].expand(-1, -1, *image.shape[2:])  # (BT, S, rows, cols)
+        grid = torch.cat([image, side], dim=1)
+        return grid.view(b, t, *grid.shape[1:])
+
+    def context_grid(self, h: torch.Tensor) -> torch.Tensor:
+        """(B, deter_dim) -> (B, context_channels, rows, cols)."""
+        return F.silu(self.context(h)).view(-1, self.config.context_channels, *self.config.grid)
 
     def _gaussian(self, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mean, raw_std = params.chunk(2, dim=-1)
+        mean, raw_std = params.flatten(1).chunk(2, dim=-1)  # channel halves -> (B, stoch_dim) each
         return mean, F.softplus(raw_std) + self.config.min_std
 
     def transition(self, state: State, action: torch.Tensor) -> torch.Tensor:
@@ -273,16 +303,19 @@ class WorldModel(nn.Module):
         return self.gru(self.transition_input(torch.cat([state.z, action], dim=-1)), state.h)
 
     def prior(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self._gaussian(self.prior_net(h))
+        """p(z_t | h_t): mean and std, each (B, stoch_dim)."""
+        return self._gaussian(self.prior_net(self.context_grid(h)))
 
     def posterior(self, h: torch.Tensor, embed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self._gaussian(self.posterior_net(torch.cat([h, embed], dim=-1)))
+        """q(z_t | h_t, o_t) from h (B, deter_dim) and one step's embedding grid (B, E, rows, cols)."""
+        return self._gaussian(self.posterior_net(torch.cat([self.context_grid(h), embed], dim=1)))
 
     def decode(self, state: State) -> tuple[torch.Tensor, torch.Tensor | None]:
         """States (N, .) -> RGB (N, 3, H, W) in [0, 1] and range (N, 1, rows, width) or None."""
-        features = torch.cat([state.h, state.z], dim=-1)
-        rgb = torch.sigmoid(self.image_decoder(features))
-        lidar = self.lidar_decoder(features) if self.config.decode_lidar else None
+        z = state.z.view(-1, self.config.stoch_channels, *self.config.grid)
+        x = F.silu(self.decoder_input(torch.cat([self.context_grid(state.h), z], dim=1)))
+        rgb = torch.sigmoid(self.image_decoder(x))
+        lidar = self.lidar_decoder(torch.cat([state.h, state.z], dim=-1)) if self.config.decode_lidar else None
         return rgb, lidar
 
     # -- sequences ------------------------------------------------------------------------------
@@ -299,7 +332,7 @@ class WorldModel(nn.Module):
             sample: draw z from the posterior (training) instead of taking its mean.
         """
         b, t = obs.rgb.shape[:2]
-        embed = self.embed(obs)  # (B, T, E)
+        embed = self.embed(obs)  # (B, T, E, rows, cols)
         state = state or self.initial_state(b)
         hs, zs, prior_stats, post_stats = [], [], [], []
         for step in range(t):

@@ -37,6 +37,7 @@ class FeatureTrainingConfig:
     crop: tuple[int, int] = (96, 128)  # (h, w) random crop, the same for both views
     batch_size: int = 12
     max_frames: int = 1200  # frames loaded, spread evenly over the normal scenarios
+    holdout: int = 1  # last normal drives (sorted) left out, as the world model does, for calibration
     lr: float = 2e-3
     pixels_per_level: int = 2048  # feature positions sampled per level for the loss
     invariance_weight: float = 25.0  # VICReg's defaults
@@ -49,14 +50,31 @@ def normal_root(data: Path) -> Path:
     return data / "normal" if (data / "normal").is_dir() else data
 
 
-def load_normal_rgb(data: Path, size: tuple[int, int], max_frames: int) -> np.ndarray:
-    """(N, h, w, 3) uint8 camera frames of normal scenarios, resized to `size`, evenly spread."""
-    from umad_common.datasets.anovox import AnoVoxScenario, find_scenarios
+SENSOR_MODALITIES = ("rgb", "lidar", "action", "route")  # what the world model sees; never labels
+
+
+def label_free_scenario(path: Path, every: int = 1, keep: tuple[str, ...] = SENSOR_MODALITIES):
+    """An AnoVoxScenario that cannot open label files: modalities outside `keep` (semantic,
+    instance, anomaly, depth) are hidden from the reader, which then returns None for them."""
+    from umad_common.datasets.anovox import AnoVoxScenario
+
+    scenario = AnoVoxScenario(path, every=every)
+    scenario.folders = {key: folder for key, folder in scenario.folders.items() if key in keep}
+    return scenario
+
+
+def load_normal_rgb(data: Path, cfg: FeatureTrainingConfig) -> tuple[np.ndarray, list[str]]:
+    """(N, h, w, 3) uint8 camera frames of the normal training drives, resized to `cfg.size` and
+    spread evenly over them, and the names of the held-out drives."""
+    from umad_common.datasets.anovox import find_scenarios
 
     root = normal_root(data)
-    scenarios = [AnoVoxScenario(path) for path in find_scenarios(root)]
-    if not scenarios:
+    paths = find_scenarios(root)
+    if not paths:
         raise FileNotFoundError(f"{root}: no Scenario_* folders with normal drives found")
+    keep = len(paths) - min(cfg.holdout, len(paths) - 1)
+    scenarios = [label_free_scenario(path, keep=("rgb",)) for path in paths[:keep]]
+    size, max_frames = cfg.size, cfg.max_frames
     total = sum(len(s) for s in scenarios)
     stride = max(1, int(np.ceil(total / max_frames)))
     frames = []
@@ -65,14 +83,14 @@ def load_normal_rgb(data: Path, size: tuple[int, int], max_frames: int) -> np.nd
             rgb = scenario[index].rgb
             frames.append(cv2.resize(rgb, (size[1], size[0]), interpolation=cv2.INTER_AREA))
     log.info(
-        "loaded %d normal frames (every %d of %d) from %d scenarios in %s",
+        "loaded %d normal frames (every %d of %d) from %d training drives in %s",
         len(frames),
         stride,
         total,
         len(scenarios),
         root,
     )
-    return np.stack(frames)
+    return np.stack(frames), [p.name for p in paths[keep:]]
 
 
 def gaussian_blur(x: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
@@ -149,12 +167,22 @@ def dense_vicreg_loss(
     return total / len(levels1)
 
 
-def train_feature_net(frames: np.ndarray, cfg: FeatureTrainingConfig, data_name: str = "") -> FeatureNet:
+def train_feature_net(
+    frames: np.ndarray, cfg: FeatureTrainingConfig, data_name: str = "", heldout: list[str] | None = None
+) -> FeatureNet:
     """Train on (N, h, w, 3) uint8 normal frames; deterministic for a given seed and thread count."""
+    was_deterministic = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True)
+    try:
+        return _train(frames, cfg, data_name, heldout or [])
+    finally:
+        torch.use_deterministic_algorithms(was_deterministic)
+
+
+def _train(frames: np.ndarray, cfg: FeatureTrainingConfig, data_name: str, heldout: list[str]) -> FeatureNet:
     from tqdm import tqdm
 
     torch.manual_seed(cfg.seed)
-    torch.use_deterministic_algorithms(True)
     gen = torch.Generator().manual_seed(cfg.seed)
     images = torch.from_numpy(frames).permute(0, 3, 1, 2).contiguous()  # (N, 3, h, w) uint8
     pixels = images.float().div_(255.0)
@@ -193,6 +221,7 @@ def train_feature_net(frames: np.ndarray, cfg: FeatureTrainingConfig, data_name:
     model.config.training = {
         "objective": "dense VICReg on two photometric views (blur, colour jitter, noise), same geometry",
         "data": data_name,
+        "heldout_drives": heldout,
         "frames": int(len(images)),
         "size": list(cfg.size),
         "crop": list(cfg.crop),

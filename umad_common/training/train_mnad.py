@@ -16,6 +16,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
@@ -117,7 +118,28 @@ def _train(
 
 
 def load_normal_frames(data: Path, cfg: MnadConfig, max_frames: int) -> np.ndarray:
-    """Normal camera frames at the model size (the feature-net trainer's loader: DATA/normal first)."""
-    from umad_common.training.train_features import load_normal_rgb
+    """(N, h, w, 3) uint8 camera frames of the normal drives (DATA/normal when present), resized to
+    the model size and spread evenly over all drives. Label files are never opened."""
+    from umad_common.datasets.anovox import find_scenarios
+    from umad_common.training.train_features import label_free_scenario, normal_root
 
-    return load_normal_rgb(data, (cfg.height, cfg.width), max_frames)
+    root = normal_root(Path(data))
+    scenarios = [label_free_scenario(path, keep=("rgb",)) for path in find_scenarios(root)]
+    if not scenarios:
+        raise FileNotFoundError(f"{root}: no Scenario_* folders with normal drives found")
+    total = sum(len(s) for s in scenarios)
+    stride = max(1, int(np.ceil(total / max_frames)))
+    frames = [
+        cv2.resize(scenario[index].rgb, (cfg.width, cfg.height), interpolation=cv2.INTER_AREA)
+        for scenario in tqdm(scenarios, desc="load normal drives", unit="drive")
+        for index in range(0, len(scenario), stride)
+    ]
+    log.info(
+        "loaded %d normal frames (every %d of %d) from %d drives in %s",
+        len(frames),
+        stride,
+        total,
+        len(scenarios),
+        root,
+    )
+    return np.stack(frames)

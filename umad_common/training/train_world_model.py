@@ -28,8 +28,8 @@ from umad_common.models.world_model import (
     WorldModelConfig,
     action_of,
     lidar_range_image,
-    resize_route,
     resize_rgb,
+    resize_route,
     save_world_model,
     weight_paths,
 )

@@ -30,22 +30,35 @@ def _number(value: float) -> float | None:
     return None if value is None or math.isnan(value) else float(value)
 
 
-def _weights_label(weights: dict[str, Fraction]) -> str:
-    return " + ".join(f"{w} {m}" for m, w in weights.items())
+def component_table(components: dict[str, dict]) -> str:
+    """SegmentMeIfYouCan component metrics per configuration (Markdown)."""
+    if not components:
+        return "(not computed)\n"
+    lines = [
+        "| configuration | threshold | sIoU | PPV | mean F1 | GT components | predicted components |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, c in components.items():
+        cells = [f"{c['threshold']:.4g}", *(_percent(_number(c[k])) for k in ("sIoU", "PPV", "mean_F1"))]
+        lines.append(
+            f"| {name} | " + " | ".join([*cells, str(c["n_truth_components"]), str(c["n_predicted_components"])]) + " |"
+        )
+    return (
+        "\n".join(lines) + "\n\nScore maps thresholded at each configuration's best pixel-F1 threshold; values in %.\n"
+    )
 
 
 def table_rows(result: SweepResult) -> list[dict[str, Any]]:
     """One dict per configuration, in table order: weight row, then mask setting; MNAD excluded."""
-    order = {None: -1} | {op: i for i, op in enumerate(sorted(result.segmenters, key=_segmenter_rank(result)))}
-    configs = sorted(result.metrics, key=lambda c: (c.row, order.get(c.segmenter, 99), _mode_rank(c.mode)))
+    order = {label: i for i, label in enumerate(result.setting_labels())}
+    configs = sorted(result.metrics, key=lambda c: (c.row, order.get(result.setting_label(c), 99)))
     rows = []
     for config in configs:
         scores = result.metrics[config].compute()
-        weights = result.rows[config.row]
         rows.append(
             {
-                "weights": {m: float(w) for m, w in weights.items()},
-                "weights_label": _weights_label(weights),
+                "weights": {m: float(w) for m, w in result.rows[config.row].items()},
+                "weights_label": result.row_label(config.row),
                 "masks": result.setting_label(config),
                 "segmenter": config.segmenter,
                 "mode": config.mode,
@@ -58,18 +71,6 @@ def table_rows(result: SweepResult) -> list[dict[str, Any]]:
             }
         )
     return rows
-
-
-def _segmenter_rank(result: SweepResult):
-    def rank(op: str) -> tuple[int, str]:
-        method = result.segmenters.get(op, op)
-        return ({"gt": 0, "sam": 2}.get(method, 1), op)
-
-    return rank
-
-
-def _mode_rank(mode: str) -> int:
-    return ("none", "mean", "max", "single").index(mode) if mode in ("none", "mean", "max", "single") else 9
 
 
 def baseline_row(result: SweepResult) -> dict[str, Any] | None:
@@ -89,13 +90,14 @@ def baseline_row(result: SweepResult) -> dict[str, Any] | None:
 
 
 def rank_marks(rows: list[dict[str, Any]]) -> list[dict[str, str]]:
-    """Per row and score column: "best", "second" or "" (ties share the mark)."""
+    """Per row and score column: "best", "second" or "" (values equal as shown, in % to 2 decimals, share a mark)."""
     marks = [{key: "" for key, _ in SCORES} for _ in rows]
     for key, higher in SCORES:
-        values = sorted({r[key] for r in rows if r[key] is not None}, reverse=higher)
+        shown = [None if r[key] is None else round(100 * r[key], 2) for r in rows]
+        values = sorted({v for v in shown if v is not None}, reverse=higher)
         for mark, value in zip(("best", "second"), values, strict=False):
-            for i, r in enumerate(rows):
-                if r[key] == value:
+            for i, v in enumerate(shown):
+                if v == value:
                     marks[i][key] = mark
     return marks
 
@@ -144,9 +146,23 @@ def write_table(rows: list[dict[str, Any]], baseline: dict[str, Any] | None, md_
     return text
 
 
+def pivot_table(rows: list[dict[str, Any]], baseline: dict[str, Any] | None, key: str = "AP") -> str:
+    """One score as a weight-row x mask-setting grid (Markdown), the compact view of the ablation."""
+    settings = list(dict.fromkeys(r["masks"] for r in rows))
+    labels = list(dict.fromkeys(r["weights_label"] for r in rows))
+    cell = {(r["weights_label"], r["masks"]): r[key] for r in rows}
+    lines = [f"| {key} (%) | " + " | ".join(settings) + " |", "|---|" + "---|" * len(settings)]
+    for label in labels:
+        lines.append(f"| {label} | " + " | ".join(_percent(cell.get((label, s))) for s in settings) + " |")
+    if baseline is not None:
+        lines.append("| MNAD baseline | " + " | ".join([_percent(baseline[key])] + [""] * (len(settings) - 1)) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def scenario_table(result: SweepResult, md_path: Path, csv_path: Path) -> str:
     """AP / FPR95 / AUROC per scenario for the default weight row under each mask setting and MNAD."""
-    settings = sorted({label for per_run in result.per_scenario.values() for label in per_run}, key=_setting_order)
+    present = {label for per_run in result.per_scenario.values() for label in per_run}
+    settings = [label for label in [*result.setting_labels(), "MNAD"] if label in present]
     lines = [
         "| scenario | " + " | ".join(f"{s} AP / FPR95 / AUROC" for s in settings) + " |",
         "|---|" + "---|" * len(settings),
@@ -170,23 +186,17 @@ def scenario_table(result: SweepResult, md_path: Path, csv_path: Path) -> str:
     return text
 
 
-def _setting_order(label: str) -> tuple[int, str]:
-    return (0 if label == "no mask" else 2 if label == "MNAD" else 1, label)
-
-
 def selected_curves(result: SweepResult, rows: list[dict[str, Any]]) -> dict[str, PixelMetrics]:
     """Curves worth drawing: the best-AP configuration, the default row per mask setting, MNAD."""
     curves: dict[str, PixelMetrics] = {}
     scored = [c for c in result.metrics if result.metrics[c].n_anomaly]
     if scored:
         best = max(scored, key=lambda c: result.metrics[c].compute()["AP"])
-        curves[f"best: {_weights_label(result.rows[best.row])}, {result.setting_label(best)}"] = result.metrics[best]
+        curves[f"best: {result.row_label(best.row)}, {result.setting_label(best)}"] = result.metrics[best]
     if result.default_row is not None:
-        for config in sorted(result.metrics, key=lambda c: (c.segmenter or "", _mode_rank(c.mode))):
+        for config in result.metrics:
             if config.row == result.default_row and config.mode in ("none", "mean"):
-                curves[f"{_weights_label(result.rows[config.row])}, {result.setting_label(config)}"] = result.metrics[
-                    config
-                ]
+                curves[f"{result.row_label(config.row)}, {result.setting_label(config)}"] = result.metrics[config]
     if result.baseline is not None:
         curves["MNAD"] = result.baseline
     return curves
@@ -202,18 +212,23 @@ def write_report(result: SweepResult, out: str | Path, log_path: str | Path | No
         "log": str(log_path) if log_path else None,
         "rows": rows,
         "baseline": baseline,
-        "default_weights": None if result.default_row is None else _weights_label(result.rows[result.default_row]),
+        "default_weights": None if result.default_row is None else result.row_label(result.default_row),
         "per_scenario": {
             run: {label: {k: _number(m.compute()[k]) for k, _ in SCORES} for label, m in per_run.items()}
             for run, per_run in sorted(result.per_scenario.items())
         },
+        "components": {
+            name: {k: (_number(v) if isinstance(v, float) else v) for k, v in c.items()}
+            for name, c in result.components.items()
+        },
         "segmenters": result.segmenters,
-        "skipped_weight_rows": [_weights_label(result.rows[i]) for i in result.skipped_rows],
+        "skipped_weight_rows": [result.row_label(i) for i in result.skipped_rows],
         "log_stats": {k: v for k, v in vars(stats).items() if k != "segmenters"},
         "sweep_seconds": round(result.seconds, 2),
     }
     (out / "results.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
     table = write_table(rows, baseline, out / "table.md", out / "table.csv")
+    summary_pivot = pivot_table(rows, baseline)
     scenarios = scenario_table(result, out / "per_scenario.md", out / "per_scenario.csv")
     plot_curves(selected_curves(result, rows), out / "pr_curves.png", out / "roc_curves.png")
     overlay_files = []
@@ -222,7 +237,9 @@ def write_report(result: SweepResult, out: str | Path, log_path: str | Path | No
         title = f"{frame.run} #{frame.seq}: {frame.anomaly_pixels} anomaly pixels"
         plot_overlay_grid(frame.images, title, out / name)
         overlay_files.append((name, title))
-    index = _index_markdown(summary, table, scenarios, overlay_files)
+    components = component_table(result.components)
+    (out / "components.md").write_text(components)
+    index = _index_markdown({**summary, "pivot": summary_pivot}, table, scenarios, components, overlay_files)
     (out / "index.md").write_text(index)
     (out / "index.html").write_text(_index_html(summary, out, overlay_files))
     return out / "index.md"
@@ -244,9 +261,13 @@ def _log_lines(summary: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _index_markdown(summary: dict[str, Any], table: str, scenarios: str, overlays: list[tuple[str, str]]) -> str:
+def _index_markdown(
+    summary: dict[str, Any], table: str, scenarios: str, components: str, overlays: list[tuple[str, str]]
+) -> str:
     parts = ["# UMAD evaluation report", "", *_log_lines(summary), ""]
+    parts += ["## AP by weights and masks", "", summary["pivot"]]
     parts += ["## Ablation table", "", "Files: `results.json`, `table.md`, `table.csv`.", "", table]
+    parts += ["## Component metrics (SegmentMeIfYouCan)", "", components]
     parts += ["## Curves", "", "![precision-recall](pr_curves.png)", "![ROC](roc_curves.png)", ""]
     parts += ["## Per scenario (default weights)", "", "Files: `per_scenario.md`, `per_scenario.csv`.", "", scenarios]
     parts += ["## Frames with the largest anomalies", ""]
@@ -270,6 +291,7 @@ def _index_html(summary: dict[str, Any], out: Path, overlays: list[tuple[str, st
         "td,th{border:1px solid #ccc;padding:2px 6px}img{max-width:100%}</style></head><body>"
         f"<h1>UMAD evaluation report</h1><ul>{items}</ul>"
         f"<h2>Ablation table</h2>{table_html(out / 'table.csv')}"
+        f"<h2>Component metrics (SegmentMeIfYouCan)</h2><pre>{html.escape((out / 'components.md').read_text())}</pre>"
         "<h2>Curves</h2><img src='pr_curves.png' alt='precision-recall'><img src='roc_curves.png' alt='ROC'>"
         f"<h2>Per scenario (default weights)</h2>{table_html(out / 'per_scenario.csv')}"
         f"<h2>Frames with the largest anomalies</h2>{pictures}</body></html>\n"

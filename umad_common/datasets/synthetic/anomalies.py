@@ -23,7 +23,15 @@ TAG_HOME, TAG_ANIMAL, TAG_NATURE, TAG_SPECIAL = 29, 30, 31, 32
 ANOMALY_TAGS = (29, 30, 31, 32, 33, 34, 100)
 
 # Saturated colours that appear nowhere in normal drives.
-VIVID = [(0.85, 0.10, 0.75), (0.50, 0.10, 0.72), (0.00, 0.72, 0.78), (1.00, 0.45, 0.00), (0.95, 0.85, 0.00), (1.00, 0.50, 0.75), (0.60, 0.95, 0.10)]
+VIVID = [
+    (0.85, 0.10, 0.75),
+    (0.50, 0.10, 0.72),
+    (0.00, 0.72, 0.78),
+    (1.00, 0.45, 0.00),
+    (0.95, 0.85, 0.00),
+    (1.00, 0.50, 0.75),
+    (0.60, 0.95, 0.10),
+]
 
 
 @dataclass
@@ -59,7 +67,15 @@ def home_object(rng: np.random.Generator) -> AnomalyShape:
         parts = [Part(KIND_BOX, (0, 0, 0.74), (length / 2, w / 2, 0.03), t, colour)]
         for sx in (-1, 1):
             for sy in (-1, 1):
-                parts.append(Part(KIND_CYLINDER, (sx * (length / 2 - 0.08), sy * (w / 2 - 0.08), 0.36), (0.04, 0.04, 0.36), t, colour))
+                parts.append(
+                    Part(
+                        KIND_CYLINDER,
+                        (sx * (length / 2 - 0.08), sy * (w / 2 - 0.08), 0.36),
+                        (0.04, 0.04, 0.36),
+                        t,
+                        colour,
+                    )
+                )
         size = (length, w, 0.77)
     else:
         w, h = rng.uniform(0.9, 1.4), rng.uniform(1.6, 2.0)
@@ -78,13 +94,37 @@ def animal_object(rng: np.random.Generator) -> AnomalyShape:
     body_z = leg + 0.25 * scale
     parts = [
         Part(KIND_ELLIPSOID, (0, 0, body_z), (0.65 * scale, 0.25 * scale, 0.3 * scale), t, coat, material),
-        Part(KIND_CYLINDER, (0.6 * scale, 0, body_z + 0.3 * scale), (0.09 * scale, 0.09 * scale, 0.25 * scale), t, coat, pitch=0.5),
-        Part(KIND_ELLIPSOID, (0.78 * scale, 0, body_z + 0.55 * scale), (0.22 * scale, 0.11 * scale, 0.12 * scale), t, coat, material),
+        Part(
+            KIND_CYLINDER,
+            (0.6 * scale, 0, body_z + 0.3 * scale),
+            (0.09 * scale, 0.09 * scale, 0.25 * scale),
+            t,
+            coat,
+            pitch=0.5,
+        ),
+        Part(
+            KIND_ELLIPSOID,
+            (0.78 * scale, 0, body_z + 0.55 * scale),
+            (0.22 * scale, 0.11 * scale, 0.12 * scale),
+            t,
+            coat,
+            material,
+        ),
     ]
     for sx in (-1, 1):
         for sy in (-1, 1):
-            parts.append(Part(KIND_CYLINDER, (sx * 0.42 * scale, sy * 0.13 * scale, leg / 2 + 0.1 * scale), (0.05 * scale, 0.05 * scale, leg / 2 + 0.1 * scale), t, coat))
-    return AnomalyShape("animal", t, f"synthetic.animal.{variant}", parts, (1.8 * scale, 0.6 * scale, body_z + 0.7 * scale))
+            parts.append(
+                Part(
+                    KIND_CYLINDER,
+                    (sx * 0.42 * scale, sy * 0.13 * scale, leg / 2 + 0.1 * scale),
+                    (0.05 * scale, 0.05 * scale, leg / 2 + 0.1 * scale),
+                    t,
+                    coat,
+                )
+            )
+    return AnomalyShape(
+        "animal", t, f"synthetic.animal.{variant}", parts, (1.8 * scale, 0.6 * scale, body_z + 0.7 * scale)
+    )
 
 
 def nature_object(rng: np.random.Generator) -> AnomalyShape:
@@ -95,12 +135,30 @@ def nature_object(rng: np.random.Generator) -> AnomalyShape:
         r = rng.uniform(0.5, 0.9)
         parts = [
             Part(KIND_ELLIPSOID, (0, 0, r * 0.6), (r, r * 0.85, r * 0.7), t, (0.47, 0.42, 0.38), MAT_ROUGH),
-            Part(KIND_ELLIPSOID, (r * 0.6, r * 0.4, r * 0.35), (r * 0.5, r * 0.45, r * 0.4), t, (0.47, 0.42, 0.38), MAT_ROUGH),
+            Part(
+                KIND_ELLIPSOID,
+                (r * 0.6, r * 0.4, r * 0.35),
+                (r * 0.5, r * 0.45, r * 0.4),
+                t,
+                (0.47, 0.42, 0.38),
+                MAT_ROUGH,
+            ),
         ]
         size = (2 * r, 1.7 * r, 1.3 * r)
     elif variant == "log":
         length, r = rng.uniform(2.5, 4.0), rng.uniform(0.2, 0.32)
-        parts = [Part(KIND_CYLINDER, (0, 0, r), (r, r, length / 2), t, (0.42, 0.26, 0.12), MAT_ROUGH, yaw=np.pi / 2 + rng.uniform(-0.3, 0.3), pitch=np.pi / 2)]
+        parts = [
+            Part(
+                KIND_CYLINDER,
+                (0, 0, r),
+                (r, r, length / 2),
+                t,
+                (0.42, 0.26, 0.12),
+                MAT_ROUGH,
+                yaw=np.pi / 2 + rng.uniform(-0.3, 0.3),
+                pitch=np.pi / 2,
+            )
+        ]
         size = (2 * r, length, 2 * r)
     else:
         r = rng.uniform(0.6, 1.0)
@@ -118,7 +176,9 @@ def special_object(rng: np.random.Generator) -> AnomalyShape:
         parts = []
         for k in range(3):
             y = (k - 1) * rng.uniform(0.7, 1.1)
-            parts.append(Part(KIND_CONE, (rng.uniform(-0.3, 0.3), y, 0.4), (0.2, 0.2, 0.4), t, (1.0, 0.42, 0.0), MAT_STRIPES))
+            parts.append(
+                Part(KIND_CONE, (rng.uniform(-0.3, 0.3), y, 0.4), (0.2, 0.2, 0.4), t, (1.0, 0.42, 0.0), MAT_STRIPES)
+            )
             parts.append(Part(KIND_BOX, (parts[-1].center[0], y, 0.02), (0.24, 0.24, 0.02), t, (0.1, 0.1, 0.1)))
         size = (0.5, 2.5, 0.8)
     elif variant == "barrel":

@@ -151,7 +151,9 @@ class PrimHit:
     prim: np.ndarray  # (N,) index of that primitive, -1 where none
 
 
-def intersect_prims(origin: np.ndarray, dirs: np.ndarray, grid_shape: tuple[int, int], prims: PrimSet, rects: np.ndarray) -> PrimHit:
+def intersect_prims(
+    origin: np.ndarray, dirs: np.ndarray, grid_shape: tuple[int, int], prims: PrimSet, rects: np.ndarray
+) -> PrimHit:
     """Nearest primitive per ray; each primitive tested only inside its rectangle [r0, r1) x [c0, c1).
 
     Args:
@@ -211,10 +213,10 @@ def camera_rects(corners_cam: np.ndarray, focal: float, width: int, height: int,
     big = 1e9
     u_lo, u_hi = np.where(valid, u, big).min(1), np.where(valid, u, -big).max(1)
     v_lo, v_hi = np.where(valid, v, big).min(1), np.where(valid, v, -big).max(1)
-    rects = np.stack(
-        [np.floor(v_lo) - 1, np.floor(v_hi) + 2, np.floor(u_lo) - 1, np.floor(u_hi) + 2], axis=1
+    rects = np.stack([np.floor(v_lo) - 1, np.floor(v_hi) + 2, np.floor(u_lo) - 1, np.floor(u_hi) + 2], axis=1)
+    rects = np.clip(
+        np.nan_to_num(rects, nan=0.0, posinf=big, neginf=-big), [0, 0, 0, 0], [height, height, width, width]
     )
-    rects = np.clip(np.nan_to_num(rects, nan=0.0, posinf=big, neginf=-big), [0, 0, 0, 0], [height, height, width, width])
     rects[~valid.any(1)] = 0
     return rects.astype(np.int64)
 

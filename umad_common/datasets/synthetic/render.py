@@ -59,12 +59,71 @@ class Weather:
 
 
 WEATHERS = (
-    Weather("clear_noon", (0.25, 0.45, 0.80), (0.70, 0.80, 0.92), 60, (1.0, 0.97, 0.9), 0.7, 0.55, 0.003, (0.75, 0.82, 0.90), 0.2),
-    Weather("cloudy", (0.52, 0.55, 0.60), (0.76, 0.77, 0.79), 45, (1.0, 1.0, 1.0), 0.18, 0.78, 0.006, (0.72, 0.73, 0.75), 0.85),
-    Weather("rain", (0.33, 0.35, 0.38), (0.55, 0.56, 0.58), 40, (1.0, 1.0, 1.0), 0.06, 0.62, 0.014, (0.50, 0.52, 0.55), 0.9, rain=True),
-    Weather("fog", (0.70, 0.71, 0.73), (0.78, 0.79, 0.80), 40, (1.0, 1.0, 1.0), 0.12, 0.72, 0.045, (0.76, 0.77, 0.78), 0.3),
-    Weather("dusk", (0.20, 0.24, 0.45), (0.95, 0.56, 0.32), 7, (1.0, 0.62, 0.36), 0.75, 0.38, 0.005, (0.80, 0.56, 0.42), 0.35),
-    Weather("night", (0.01, 0.015, 0.04), (0.05, 0.06, 0.10), -20, (0.0, 0.0, 0.0), 0.0, 0.07, 0.008, (0.04, 0.045, 0.06), 0.0, night=True),
+    Weather(
+        "clear_noon",
+        (0.25, 0.45, 0.80),
+        (0.70, 0.80, 0.92),
+        60,
+        (1.0, 0.97, 0.9),
+        0.7,
+        0.55,
+        0.003,
+        (0.75, 0.82, 0.90),
+        0.2,
+    ),
+    Weather(
+        "cloudy",
+        (0.52, 0.55, 0.60),
+        (0.76, 0.77, 0.79),
+        45,
+        (1.0, 1.0, 1.0),
+        0.18,
+        0.78,
+        0.006,
+        (0.72, 0.73, 0.75),
+        0.85,
+    ),
+    Weather(
+        "rain",
+        (0.33, 0.35, 0.38),
+        (0.55, 0.56, 0.58),
+        40,
+        (1.0, 1.0, 1.0),
+        0.06,
+        0.62,
+        0.014,
+        (0.50, 0.52, 0.55),
+        0.9,
+        rain=True,
+    ),
+    Weather(
+        "fog", (0.70, 0.71, 0.73), (0.78, 0.79, 0.80), 40, (1.0, 1.0, 1.0), 0.12, 0.72, 0.045, (0.76, 0.77, 0.78), 0.3
+    ),
+    Weather(
+        "dusk",
+        (0.20, 0.24, 0.45),
+        (0.95, 0.56, 0.32),
+        7,
+        (1.0, 0.62, 0.36),
+        0.75,
+        0.38,
+        0.005,
+        (0.80, 0.56, 0.42),
+        0.35,
+    ),
+    Weather(
+        "night",
+        (0.01, 0.015, 0.04),
+        (0.05, 0.06, 0.10),
+        -20,
+        (0.0, 0.0, 0.0),
+        0.0,
+        0.07,
+        0.008,
+        (0.04, 0.045, 0.06),
+        0.0,
+        night=True,
+    ),
 )
 WEATHER_NAMES = tuple(w.name for w in WEATHERS)
 
@@ -130,7 +189,9 @@ def noise(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     maps = np.zeros((2, rows * 512), np.float32)  # cv2.remap wants 2-D maps under 32767 rows
     maps[0, :count] = np.mod(np.ravel(u), n)
     maps[1, :count] = np.mod(np.ravel(v), n)
-    out = cv2.remap(tex, maps[0].reshape(rows, 512), maps[1].reshape(rows, 512), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    out = cv2.remap(
+        tex, maps[0].reshape(rows, 512), maps[1].reshape(rows, 512), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP
+    )
     return out.ravel()[:count].reshape(np.shape(u)).astype(np.float64)
 
 
@@ -150,7 +211,9 @@ class CameraFrame:
 class Renderer:
     """Renders one scenario's sensors for ego poses (x, y, heading) and the primitives of the moment."""
 
-    def __init__(self, road: RoadCurve, weather: Weather, camera: CameraSpec, lidar: LidarSpec, seed: int, sun_azimuth: float):
+    def __init__(
+        self, road: RoadCurve, weather: Weather, camera: CameraSpec, lidar: LidarSpec, seed: int, sun_azimuth: float
+    ):
         self.road, self.weather, self.camera, self.lidar, self.seed = road, weather, camera, lidar, seed
         self.camera_rays = camera.rays()
         self.camera_ray_len = np.linalg.norm(self.camera_rays, axis=1)
@@ -189,7 +252,9 @@ class Renderer:
         rng_m = t * self.camera_ray_len
         colour[ground_px] = self._shade_ground(ground, line, ground_px, origin, dirs, rng_m)
         if use_prim.any():
-            colour[use_prim] = self._shade_prims(prims, hit.prim[use_prim], origin, dirs[use_prim], t[use_prim], rng_m[use_prim])
+            colour[use_prim] = self._shade_prims(
+                prims, hit.prim[use_prim], origin, dirs[use_prim], t[use_prim], rng_m[use_prim]
+            )
         if self.weather.night:
             boost = 1 + self._headlights(rng_m[~sky], self.camera_rays[~sky]) / self.weather.ambient
             colour[~sky] *= boost[:, None]
@@ -233,7 +298,7 @@ class Renderer:
         w = self.weather
         unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
         up = np.clip(unit[:, 2], 0, 1)
-        mix = (up ** 0.6)[:, None]
+        mix = (up**0.6)[:, None]
         colour = np.array(w.sky_horizon) * (1 - mix) + np.array(w.sky_top) * mix
         if w.cloud > 0:
             lift = np.maximum(unit[:, 2], 0.03) + 0.05
@@ -243,7 +308,9 @@ class Renderer:
             colour = colour * (1 - amount[:, None] * w.cloud) + cloud_colour * amount[:, None] * w.cloud
         if w.sun_strength > 0:
             glow = np.clip(np.einsum("nj,j->n", unit, self.sun), 0, 1)
-            colour = colour + np.array(w.sun_colour) * (0.35 * glow**24 + 0.8 * (glow > 0.9995))[:, None] * w.sun_strength
+            colour = (
+                colour + np.array(w.sun_colour) * (0.35 * glow**24 + 0.8 * (glow > 0.9995))[:, None] * w.sun_strength
+            )
         return colour
 
     def _shade_ground(self, ground, line, px, origin, dirs, rng_m) -> np.ndarray:
@@ -266,7 +333,9 @@ class Renderer:
         dirt = np.clip(noise(x * 0.08 + 13, y * 0.08 + 71) * 1.5 + 0.2, 0, 1)[:, None]
         grass = np.array([0.27, 0.38, 0.15]) * (1 - dirt * 0.6) + np.array([0.42, 0.35, 0.24]) * dirt * 0.6
         grass = grass * (1 + 0.2 * coarse + 0.25 * fine)[:, None]
-        base = np.where((surface == GROUND_ROAD)[:, None], road, np.where((surface == GROUND_SIDEWALK)[:, None], walk, grass))
+        base = np.where(
+            (surface == GROUND_ROAD)[:, None], road, np.where((surface == GROUND_SIDEWALK)[:, None], walk, grass)
+        )
         return base * (w.ambient + w.sun_strength * max(self.sun[2], 0.0))
 
     def _shade_prims(self, prims: PrimSet, idx: np.ndarray, origin, dirs, t, rng_m) -> np.ndarray:
@@ -285,7 +354,14 @@ class Renderer:
         facade = (material == MAT_WINDOWS) & (np.abs(normal[:, 2]) < 0.5)
         along = np.where(np.abs(n_unit[:, 0]) > 0.5, metres[:, 1], metres[:, 0])
         height = p_world[:, 2]
-        window = facade & (np.mod(along, 3.0) > 0.8) & (np.mod(along, 3.0) < 2.2) & (np.mod(height, 3.2) > 1.1) & (np.mod(height, 3.2) < 2.5) & (height > 1.0)
+        window = (
+            facade
+            & (np.mod(along, 3.0) > 0.8)
+            & (np.mod(along, 3.0) < 2.2)
+            & (np.mod(height, 3.2) > 1.1)
+            & (np.mod(height, 3.2) < 2.5)
+            & (height > 1.0)
+        )
         glass = np.array([0.13, 0.16, 0.21]) + 0.15 * np.array(w.sky_horizon)
         if w.night:
             cell = np.floor(along / 3.0) * 7.0 + np.floor(height / 3.2) * 13.0 + prims.inst[idx] * 3.0
@@ -298,7 +374,9 @@ class Renderer:
         base[cabin_side] = (0.10, 0.12, 0.15) + 0.2 * np.array(w.sky_horizon)
         angle = np.arctan2(p_unit[:, 1], p_unit[:, 0])
         foliage = material == MAT_FOLIAGE
-        base[foliage] *= (0.7 + 0.45 * noise(angle * 6 + idx * 3.1, metres[:, 2] * 2.5)[foliage] * (0.4 + 0.6 * fade[foliage]))[:, None]
+        base[foliage] *= (
+            0.7 + 0.45 * noise(angle * 6 + idx * 3.1, metres[:, 2] * 2.5)[foliage] * (0.4 + 0.6 * fade[foliage])
+        )[:, None]
         rough = material == MAT_ROUGH
         base[rough] *= (0.8 + 0.3 * noise(angle * 4 + metres[:, 2] * 5, metres[:, 2] * 3 + idx)[rough])[:, None]
         spots = (material == MAT_SPOTS) & (noise(angle * 3 + 40, metres[:, 2] * 6 + 40) > 0.2)

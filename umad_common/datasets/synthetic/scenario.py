@@ -51,7 +51,7 @@ class Anomaly:
     inst: int
     s: float
     d: float
-    yaw: float
+    yaw: float  # world heading of the object (relative to the road until placed)
     behaviour: str  # "brake" (stop before it) or "pass" (drive by it slowly)
     position: tuple[float, float, float]
 
@@ -68,9 +68,16 @@ class SyntheticFrame:
     route: np.ndarray  # (192, 192) uint8
 
 
-def drive(road: RoadCurve, frames: int, cruise: float, v0: float, limit=None) -> EgoTrack:
-    """Simulate the ego with a speed controller; `limit(s)` caps the target speed (anomaly logic)."""
-    s, v = 0.0, v0
+def drive(
+    road: RoadCurve, frames: int, cruise: float, v0: float, limit=None, stop: tuple[float, int] | None = None
+) -> EgoTrack:
+    """Simulate the ego with a speed controller.
+
+    Args:
+        limit: optional cap on the target speed as a function of s (slow pass of an object).
+        stop: optional (s_stop, hold_frames): brake to a standstill at s_stop, wait, drive on.
+    """
+    s, v, held = 0.0, v0, 0
     out = {k: np.zeros(frames) for k in ("s", "speed", "throttle", "brake", "steer", "curvature")}
     for i in range(frames):
         kappa_c = float(road.curvature(np.array(s)))
@@ -79,11 +86,15 @@ def drive(road: RoadCurve, frames: int, cruise: float, v0: float, limit=None) ->
         target = min(cruise, np.sqrt(LATERAL_ACCEL / max(np.abs(road.curvature(np.array([s, ahead]))).max(), 1e-6)))
         if limit is not None:
             target = min(target, limit(s), limit(s + v * 0.5))
+        stopping = stop is not None and held < stop[1]
+        if stopping:
+            target = min(target, np.sqrt(max(0.0, 2 * 2.5 * (stop[0] - s - v * 0.3))))
         accel_cmd = np.clip(1.2 * (target - v), -MAX_DECEL, MAX_ACCEL)
         throttle = float(np.clip(accel_cmd / MAX_ACCEL, 0, 1))
         brake = float(np.clip(-accel_cmd / MAX_DECEL, 0, 1))
-        if target < 0.05 and v < 0.05:
+        if stopping and target < 0.3 and v < 0.3:
             throttle, brake = 0.0, 0.5  # holding the car at a standstill
+            held += 1
         out["s"][i], out["speed"][i], out["throttle"][i], out["brake"][i] = s, v, throttle, brake
         out["curvature"][i] = kappa
         out["steer"][i] = float(np.clip(-np.arctan(WHEELBASE_M * kappa) / MAX_STEER_RAD, -1, 1))
@@ -110,9 +121,13 @@ class SyntheticScenario:
         rng = np.random.default_rng(seed)
         self.seed, self.frames = seed, frames
         self.camera, self.lidar = camera or CameraSpec(), lidar or LidarSpec()
-        self.weather: Weather = next((w for w in WEATHERS if w.name == weather), None) or WEATHERS[rng.integers(len(WEATHERS))]
-        if weather is not None and self.weather.name != weather:
-            raise ValueError(f"unknown weather {weather!r}; expected one of {[w.name for w in WEATHERS]}")
+        if weather is None:
+            self.weather: Weather = WEATHERS[rng.integers(len(WEATHERS))]
+        else:
+            matches = [w for w in WEATHERS if w.name == weather]
+            if not matches:
+                raise ValueError(f"unknown weather {weather!r}; expected one of {[w.name for w in WEATHERS]}")
+            self.weather = matches[0]
         self.style = STYLES[rng.integers(len(STYLES))]
         cruise = rng.uniform(8.0, 11.0)
         reach = frames * FRAME_DT * cruise * 1.2 + 250
@@ -121,24 +136,25 @@ class SyntheticScenario:
         free = drive(self.road, frames, cruise, v0)
 
         self.anomaly: Anomaly | None = None
-        limit = None
+        limit, stop = None, None
         if anomaly_category is not None:
             shape = make_anomaly(rng, anomaly_category)
             behaviour = "brake" if rng.random() < 0.5 else "pass"
             half_extent = max(shape.size[0], shape.size[1]) / 2
             if behaviour == "brake":
-                s_stop = free.s[int(frames * rng.uniform(0.4, 0.6))] + 6.0
-                s_a = s_stop + rng.uniform(7.0, 11.0) + half_extent
+                s_stop = float(free.s[int(frames * rng.uniform(0.25, 0.45))])
+                s_a = s_stop + rng.uniform(5.0, 9.0) + half_extent
                 d_a = EGO_LANE_D + rng.uniform(-0.6, 0.6)
-                limit = lambda s: np.sqrt(max(0.0, 2 * 2.5 * (s_stop - s)))  # noqa: E731
+                stop = (s_stop, frames)
             else:
-                s_a = free.s[int(frames * rng.uniform(0.8, 0.92))] + 10.0
+                s_a = float(free.s[int(frames * rng.uniform(0.6, 0.75))])
                 d_a = max(ONCOMING_LANE_D + rng.uniform(-0.3, 0.5), -0.85 + 0.5 + half_extent)
                 limit = lambda s: np.sqrt(4.5**2 + 2 * 2.0 * max(0.0, s_a - 30 - s)) if s < s_a + 5 else np.inf  # noqa: E731
-            yaw_offset = rng.uniform(-np.pi, np.pi)
-            self.anomaly = Anomaly(shape, 0, float(s_a), float(d_a), 0.0, behaviour, (0.0, 0.0, 0.0))
-            self._anomaly_yaw_offset = yaw_offset
-        self.track = drive(self.road, frames, cruise, v0, limit) if limit else free
+            yaw = rng.uniform(-np.pi, np.pi)
+            self.anomaly = Anomaly(shape, 0, float(s_a), float(d_a), yaw, behaviour, (0.0, 0.0, 0.0))
+        elif rng.random() < 0.35:  # normal drives stop now and then too (a stop line, a crossing)
+            stop = (float(free.s[int(frames * rng.uniform(0.2, 0.7))]), int(rng.integers(10, 50)))
+        self.track = drive(self.road, frames, cruise, v0, limit, stop) if (limit or stop) else free
 
         s_end = float(self.track.s[-1])
         keep_clear = [(self.anomaly.s, self.anomaly.d)] if self.anomaly else []
@@ -149,7 +165,7 @@ class SyntheticScenario:
         if self.anomaly is not None:
             a = self.anomaly
             x, y, heading = (float(v) for v in self.road.to_world(np.array(a.s), np.array(a.d)))
-            a.inst, a.yaw, a.position = next_inst, heading + self._anomaly_yaw_offset, (x, y, 0.0)
+            a.inst, a.yaw, a.position = next_inst, heading + a.yaw, (x, y, 0.0)
             self.anomaly_prims = PrimSet.from_parts(a.shape.parts, x, y, a.yaw, a.inst)
         sun_azimuth = rng.uniform(-np.pi, np.pi)
         self.renderer = Renderer(self.road, self.weather, self.camera, self.lidar, seed, sun_azimuth)
@@ -163,9 +179,13 @@ class SyntheticScenario:
         for k in range(int(rng.integers(2, 7))):
             if s_hi <= s_lo:
                 break
-            movers.append((car_parts(rng), first_inst + k, rng.uniform(s_lo, s_hi), -rng.uniform(6, 11), ONCOMING_LANE_D, np.pi))
+            movers.append(
+                (car_parts(rng), first_inst + k, rng.uniform(s_lo, s_hi), -rng.uniform(6, 11), ONCOMING_LANE_D, np.pi)
+            )
         if self.anomaly is None and rng.random() < 0.5:
-            movers.append((car_parts(rng), first_inst + len(movers), rng.uniform(20, 35), cruise + 1.5, EGO_LANE_D, 0.0))
+            movers.append(
+                (car_parts(rng), first_inst + len(movers), rng.uniform(20, 35), cruise + 1.5, EGO_LANE_D, 0.0)
+            )
         return movers
 
     def pose(self, i: int) -> tuple[float, float, float]:
@@ -203,5 +223,12 @@ class SyntheticScenario:
         lidar = self.renderer.render_lidar(pose, prims) if with_lidar else np.zeros((0, 4), np.float32)
         t = self.track
         return SyntheticFrame(
-            camera, lidar, float(t.speed[i]), float(t.throttle[i]), float(t.brake[i]), float(t.steer[i]), pose, self.route_map(i)
+            camera,
+            lidar,
+            float(t.speed[i]),
+            float(t.throttle[i]),
+            float(t.brake[i]),
+            float(t.steer[i]),
+            pose,
+            self.route_map(i),
         )

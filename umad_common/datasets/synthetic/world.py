@@ -29,7 +29,14 @@ KIND_BOX, KIND_ELLIPSOID, KIND_CYLINDER, KIND_CONE = 0, 1, 2, 3
 MAT_PLAIN, MAT_WINDOWS, MAT_FOLIAGE, MAT_STRIPES, MAT_ROUGH, MAT_SPOTS, MAT_GLASS, MAT_LAMP = range(8)
 
 BUILDING_COLOURS = [(0.70, 0.62, 0.50), (0.55, 0.32, 0.24), (0.50, 0.50, 0.52), (0.80, 0.76, 0.66), (0.42, 0.46, 0.52)]
-CAR_COLOURS = [(0.82, 0.82, 0.80), (0.08, 0.08, 0.09), (0.58, 0.59, 0.60), (0.42, 0.08, 0.08), (0.10, 0.15, 0.38), (0.30, 0.34, 0.30)]
+CAR_COLOURS = [
+    (0.82, 0.82, 0.80),
+    (0.08, 0.08, 0.09),
+    (0.58, 0.59, 0.60),
+    (0.42, 0.08, 0.08),
+    (0.10, 0.15, 0.38),
+    (0.30, 0.34, 0.30),
+]
 FOLIAGE_COLOURS = [(0.22, 0.36, 0.12), (0.28, 0.40, 0.16), (0.18, 0.30, 0.14)]
 
 
@@ -166,12 +173,21 @@ def car_parts(rng: np.random.Generator) -> list[Part]:
     wheel = (0.08, 0.08, 0.08)
     parts = [
         Part(KIND_BOX, (0, 0, (0.3 + body_top) / 2), (length / 2, width / 2, (body_top - 0.3) / 2), TAG_CAR, paint),
-        Part(KIND_BOX, (-0.1 * length, 0, (body_top + cabin_top) / 2), (cabin_len / 2, width / 2 - 0.08, (cabin_top - body_top) / 2), TAG_CAR, paint, MAT_GLASS),
+        Part(
+            KIND_BOX,
+            (-0.1 * length, 0, (body_top + cabin_top) / 2),
+            (cabin_len / 2, width / 2 - 0.08, (cabin_top - body_top) / 2),
+            TAG_CAR,
+            paint,
+            MAT_GLASS,
+        ),
     ]
     for sx in (-1, 1):
         for sy in (-1, 1):
             center = (sx * (length / 2 - 0.8), sy * (width / 2 - 0.12), 0.34)
-            parts.append(Part(KIND_CYLINDER, center, (0.34, 0.34, 0.12), TAG_CAR, wheel, yaw=np.pi / 2, pitch=np.pi / 2))
+            parts.append(
+                Part(KIND_CYLINDER, center, (0.34, 0.34, 0.12), TAG_CAR, wheel, yaw=np.pi / 2, pitch=np.pi / 2)
+            )
     return parts
 
 
@@ -181,12 +197,30 @@ def tree_parts(rng: np.random.Generator) -> list[Part]:
     crown_r = rng.uniform(1.4, 2.8)
     green = FOLIAGE_COLOURS[rng.integers(len(FOLIAGE_COLOURS))]
     parts = [
-        Part(KIND_CYLINDER, (0, 0, trunk_h / 2), (0.18, 0.18, trunk_h / 2), TAG_VEGETATION, (0.30, 0.22, 0.15), MAT_ROUGH),
-        Part(KIND_ELLIPSOID, (0, 0, trunk_h + crown_r * 0.8), (crown_r, crown_r, crown_r * 1.1), TAG_VEGETATION, green, MAT_FOLIAGE),
+        Part(
+            KIND_CYLINDER, (0, 0, trunk_h / 2), (0.18, 0.18, trunk_h / 2), TAG_VEGETATION, (0.30, 0.22, 0.15), MAT_ROUGH
+        ),
+        Part(
+            KIND_ELLIPSOID,
+            (0, 0, trunk_h + crown_r * 0.8),
+            (crown_r, crown_r, crown_r * 1.1),
+            TAG_VEGETATION,
+            green,
+            MAT_FOLIAGE,
+        ),
     ]
     if rng.random() < 0.5:
         off = rng.uniform(-0.6, 0.6, 2) * crown_r
-        parts.append(Part(KIND_ELLIPSOID, (off[0], off[1], trunk_h + crown_r * 1.5), (crown_r * 0.7,) * 3, TAG_VEGETATION, green, MAT_FOLIAGE))
+        parts.append(
+            Part(
+                KIND_ELLIPSOID,
+                (off[0], off[1], trunk_h + crown_r * 1.5),
+                (crown_r * 0.7,) * 3,
+                TAG_VEGETATION,
+                green,
+                MAT_FOLIAGE,
+            )
+        )
     return parts
 
 
@@ -220,11 +254,19 @@ class WorldStyle:
     far_trees: int  # trees scattered on open terrain per 100 m
 
 
-STYLES = [WorldStyle("urban", 0.92, 0.35, 0.55, 0), WorldStyle("suburban", 0.55, 0.7, 0.35, 4), WorldStyle("rural", 0.12, 0.8, 0.12, 14)]
+STYLES = [
+    WorldStyle("urban", 0.92, 0.35, 0.55, 0),
+    WorldStyle("suburban", 0.55, 0.7, 0.35, 4),
+    WorldStyle("rural", 0.12, 0.8, 0.12, 14),
+]
 
 
 def build_static_world(
-    rng: np.random.Generator, road: RoadCurve, s_range: tuple[float, float], style: WorldStyle, keep_clear: list[tuple[float, float]]
+    rng: np.random.Generator,
+    road: RoadCurve,
+    s_range: tuple[float, float],
+    style: WorldStyle,
+    keep_clear: list[tuple[float, float]],
 ) -> tuple[PrimSet, int]:
     """Buildings, trees, lamps, signs and parked cars along the road.
 
@@ -252,7 +294,14 @@ def build_static_world(
                 depth, height = rng.uniform(8, 16), rng.uniform(5, 24)
                 setback = rng.uniform(10.5, 13.0)
                 colour = np.array(BUILDING_COLOURS[rng.integers(len(BUILDING_COLOURS))]) * rng.uniform(0.85, 1.1)
-                part = Part(KIND_BOX, (0, 0, height / 2), (length / 2, depth / 2, height / 2), TAG_BUILDING, tuple(colour), MAT_WINDOWS)
+                part = Part(
+                    KIND_BOX,
+                    (0, 0, height / 2),
+                    (length / 2, depth / 2, height / 2),
+                    TAG_BUILDING,
+                    tuple(colour),
+                    MAT_WINDOWS,
+                )
                 place([part], s + length / 2, side * (setback + depth / 2))
             s += length + gap
         s = s0 + rng.uniform(0, 8)
@@ -272,8 +321,15 @@ def build_static_world(
             s += rng.uniform(60, 140)
         s = s0 + rng.uniform(0, 6)
         while s < s1:  # parked cars
-            if rng.random() < style.parked_car and all(abs(s - ks) > 8 or abs(side * PARKING_OFFSET - kd) > 3 for ks, kd in keep_clear):
-                place(car_parts(rng), s, side * PARKING_OFFSET + rng.uniform(-0.15, 0.15), extra_yaw=np.pi if side > 0 else 0.0)
+            if rng.random() < style.parked_car and all(
+                abs(s - ks) > 8 or abs(side * PARKING_OFFSET - kd) > 3 for ks, kd in keep_clear
+            ):
+                place(
+                    car_parts(rng),
+                    s,
+                    side * PARKING_OFFSET + rng.uniform(-0.15, 0.15),
+                    extra_yaw=np.pi if side > 0 else 0.0,
+                )
                 s += rng.uniform(5.5, 8)
             else:
                 s += rng.uniform(6, 18)

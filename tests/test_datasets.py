@@ -1,0 +1,289 @@
+"""Synthetic world and AnoVox I/O: determinism, ground truth, geometry, both layouts, errors."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from umad_common.datasets.anovox import (
+    ANOMALY_COLOUR,
+    DEPTH_SCALE,
+    GENERIC_ANOMALY_TAG,
+    AnoVoxScenario,
+    DatasetError,
+    decode_depth,
+    encode_depth,
+    find_scenarios,
+    read_pcd,
+    write_benchmark_scenario,
+    write_pcd,
+)
+from umad_common.datasets.synthetic.anomalies import ANOMALY_TAGS, CATEGORIES
+from umad_common.datasets.synthetic.generator import generate_benchmark, plan_benchmark
+from umad_common.datasets.synthetic.render import WEATHER_NAMES, CameraSpec
+from umad_common.datasets.synthetic.scenario import (
+    FRAME_DT,
+    MAX_ACCEL,
+    MAX_DECEL,
+    MAX_STEER_RAD,
+    WHEELBASE_M,
+    SyntheticScenario,
+)
+
+SMALL = CameraSpec(width=96, height=64)
+
+
+def tree_digest(root: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(root)): hashlib.sha1(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
+
+
+@pytest.fixture(scope="module")
+def generated(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("synth")
+    generate_benchmark(out, normal=1, anomalous=1, frames=5, seed=7, size=(96, 64))
+    return out
+
+
+def test_same_seed_gives_identical_bytes(tmp_path, generated):
+    generate_benchmark(tmp_path, normal=1, anomalous=1, frames=5, seed=7, size=(96, 64))
+    first, second = tree_digest(generated), tree_digest(tmp_path)
+    assert len(first) > 5 * 2 * 7 and first == second
+
+
+def test_layout_has_generator_folders_and_nonzero_frame_ids(generated):
+    folders = find_scenarios(generated)
+    assert [p.parent.name for p in folders] == ["anomalous", "normal"]
+    names = {p.name.split("(")[0] for p in folders[0].iterdir()}
+    assert {
+        "RGB-CAM",
+        "DEPTH_CAM",
+        "SEMANTIC-CAM",
+        "INSTANCE-CAM",
+        "LIDAR",
+        "ACTION",
+        "ANOMALY",
+        "ROUTE_MAP",
+        "sensor_setup.json",
+    } <= names
+    scenario = AnoVoxScenario(folders[1])
+    assert scenario.layout == "generator" and len(scenario) == 5
+    assert scenario.frame_ids[0] > 0 and np.all(np.diff(scenario.frame_ids) == 1)
+    assert AnoVoxScenario(folders[1], every=2).frame_ids == scenario.frame_ids[::2]
+
+
+def test_every_weather_is_in_the_normal_drives():
+    plans = plan_benchmark(normal=12, anomalous=6, seed=0)
+    assert {p.weather for p in plans if p.split == "normal"} == set(WEATHER_NAMES)
+    assert {p.anomaly for p in plans if p.split == "anomalous"} == set(CATEGORIES)
+    assert len({p.scenario_id for p in plans}) == 18
+
+
+def object_in_view(scenario: SyntheticScenario, i: int, max_distance: float) -> tuple[bool, int, int, float]:
+    """Whether the anomaly's centre projects into the image (pixel and planar depth)."""
+    a = scenario.anomaly
+    x, y, heading = scenario.pose(i)
+    dx, dy = a.position[0] - x, a.position[1] - y
+    fwd = dx * np.cos(heading) + dy * np.sin(heading)
+    left = -dx * np.sin(heading) + dy * np.cos(heading)
+    up = a.shape.size[2] / 2 - scenario.camera.mount_height
+    cam = scenario.camera
+    if not 1.0 < fwd < max_distance:
+        return False, 0, 0, fwd
+    u = int(np.floor(cam.width / 2 - cam.focal * left / fwd))
+    v = int(np.floor(cam.height / 2 - cam.focal * up / fwd))
+    return (0 <= u < cam.width and 0 <= v < cam.height), u, v, fwd
+
+
+@pytest.mark.parametrize("category", CATEGORIES)
+def test_anomaly_pixels_present_whenever_the_object_is_in_view(category):
+    scenario = SyntheticScenario(seed=11, frames=120, anomaly_category=category, camera=SMALL)
+    seen = 0
+    for i in range(0, 120, 6):
+        frame = scenario.renderer.render_camera(scenario.pose(i), scenario.prims_at(i), i)
+        visible, u, v, distance = object_in_view(scenario, i, max_distance=30.0)
+        anomalous = np.isin(frame.semantic, ANOMALY_TAGS)
+        if visible and frame.depth[v, u] > distance - 2.0:  # not hidden behind something nearer
+            seen += 1
+            assert anomalous.sum() > 0, f"frame {i}: object in view at {distance:.1f} m but no anomaly pixels"
+            assert np.all(frame.instance[anomalous] == scenario.anomaly.inst)
+        assert np.all(frame.semantic[anomalous] == scenario.anomaly.shape.tag)
+    assert seen >= 3
+
+
+def test_normal_drives_have_no_anomaly_pixels():
+    scenario = SyntheticScenario(seed=5, frames=100, camera=SMALL)
+    assert scenario.anomaly is None and not np.isin(scenario.static.tag, ANOMALY_TAGS).any()
+    for i in range(0, 100, 20):
+        frame = scenario.renderer.render_camera(scenario.pose(i), scenario.prims_at(i), i)
+        assert not np.isin(frame.semantic, ANOMALY_TAGS).any()
+
+
+def test_road_depth_matches_the_flat_ground_formula():
+    scenario = SyntheticScenario(seed=3, frames=10, camera=SMALL)
+    frame = scenario.render(4, with_lidar=False).camera
+    cam = scenario.camera
+    rows = np.arange(cam.height)[:, None] + 0.5 - cam.height / 2
+    road = np.isin(frame.semantic, (1, 24)) & (rows > 0)
+    expected = cam.mount_height * cam.focal / np.broadcast_to(rows, road.shape)[road]
+    assert road.sum() > 500
+    np.testing.assert_allclose(frame.depth[road], expected, rtol=1e-5)
+
+
+def test_lidar_ranges_agree_with_rendered_depth():
+    scenario = SyntheticScenario(seed=9, frames=10, camera=CameraSpec(width=192, height=128))
+    frame = scenario.render(5)
+    points, cam = frame.lidar, scenario.camera
+    assert points.dtype == np.float32 and points.shape[1] == 4
+    assert np.linalg.norm(points[:, :3], axis=1).max() <= scenario.lidar.max_range + 1e-3
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    front = x > 2.0
+    u = np.floor(cam.width / 2 - cam.focal * y[front] / x[front]).astype(int)
+    v = np.floor(cam.height / 2 - cam.focal * z[front] / x[front]).astype(int)
+    inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    depth = frame.camera.depth[v[inside], u[inside]]
+    rel = np.abs(depth - x[front][inside]) / x[front][inside]
+    assert inside.sum() > 1000
+    assert np.median(rel) < 0.01 and np.mean(rel < 0.05) > 0.9
+    ground = np.abs(z + scenario.lidar.mount_height) < 1e-3
+    assert ground.sum() > 1000  # flat road returns sit exactly at the mount height below the sensor
+
+
+def test_ego_actions_follow_curvature_and_motion():
+    scenario = SyntheticScenario(seed=23, frames=150, anomaly_category="nature", camera=SMALL)
+    t = scenario.track
+    np.testing.assert_allclose(
+        t.steer, np.clip(-np.arctan(WHEELBASE_M * t.curvature) / MAX_STEER_RAD, -1, 1), atol=1e-9
+    )
+    poses = np.array([scenario.pose(i) for i in range(150)])
+    dheading = np.diff(np.unwrap(poses[:, 2]))
+    turning = np.abs(dheading) > 5e-4
+    assert turning.sum() > 10 and np.all(np.sign(t.steer[:-1][turning]) == -np.sign(dheading[turning]))
+    moving = t.speed[1:] > 0
+    accel = np.diff(t.speed) / FRAME_DT
+    expected = MAX_ACCEL * t.throttle[:-1] - MAX_DECEL * t.brake[:-1] - 0.02 * t.speed[:-1]
+    np.testing.assert_allclose(accel[moving], expected[moving], atol=1e-9)
+    step = np.hypot(*np.diff(poses[:, :2], axis=0).T)
+    np.testing.assert_allclose(step, 0.5 * (t.speed[1:] + t.speed[:-1]) * FRAME_DT, rtol=0.03, atol=0.02)
+
+
+def test_loader_reads_what_the_renderer_produced(generated):
+    folder = find_scenarios(generated / "anomalous")[0]
+    scenario = AnoVoxScenario(folder)
+    plan = next(p for p in plan_benchmark(1, 1, 7) if p.split == "anomalous")
+    world = SyntheticScenario(plan.seed, 5, plan.anomaly, plan.weather, camera=SMALL)
+    for i in (0, 4):
+        frame, truth = scenario[i], world.render(i)
+        assert frame.frame_id == plan.first_frame_id + i
+        np.testing.assert_array_equal(frame.rgb, truth.camera.rgb)
+        np.testing.assert_array_equal(frame.semantic, truth.camera.semantic)
+        np.testing.assert_array_equal(frame.instance, truth.camera.instance)
+        np.testing.assert_array_equal(frame.anomaly, np.isin(truth.camera.semantic, ANOMALY_TAGS))
+        np.testing.assert_allclose(frame.depth, truth.camera.depth, atol=DEPTH_SCALE)
+        np.testing.assert_array_equal(frame.lidar, truth.lidar)
+        np.testing.assert_array_equal(frame.route, truth.route)
+        assert frame.ego.speed_mps == pytest.approx(truth.speed, abs=1e-5)
+        assert (frame.ego.throttle, frame.ego.brake, frame.ego.steer) == pytest.approx(
+            (truth.throttle, truth.brake, truth.steer), abs=1e-6
+        )
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_benchmark_layout_reads_the_same_data(tmp_path, generated, binary):
+    source = AnoVoxScenario(find_scenarios(generated / "anomalous")[0])
+    written = write_benchmark_scenario(source, tmp_path, source.name, binary_pcd=binary)
+    copy = AnoVoxScenario(written)
+    assert copy.layout == "benchmark" and copy.frame_ids == source.frame_ids
+    for a, b in zip(source, copy, strict=True):
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        np.testing.assert_array_equal(a.depth, b.depth)
+        np.testing.assert_array_equal(a.anomaly, b.anomaly)
+        np.testing.assert_array_equal(np.where(a.anomaly == 1, GENERIC_ANOMALY_TAG, a.semantic), b.semantic)
+        np.testing.assert_array_equal(a.lidar, b.lidar)
+        assert b.instance is None and b.route is None and b.ego.speed_mps == 0.0
+    colour = (tmp_path / source.name / "SEMANTIC_IMG").iterdir().__next__()
+    assert colour.suffix == ".png"
+    assert any(AnoVoxScenario(written)[i].anomaly.any() for i in range(len(copy))) == any(
+        f.anomaly.any() for f in source
+    )
+    assert ANOMALY_COLOUR == (245, 0, 0)
+
+
+def test_depth_encoding_round_trip():
+    depth = np.array([[0.0, 1.5, 12.25], [99.9, 500.0, 1000.0]], np.float32)
+    np.testing.assert_allclose(decode_depth(encode_depth(depth)), depth, atol=DEPTH_SCALE / 2 + 1e-6)
+    assert np.all(encode_depth(np.array([[1000.0]])) == 255)
+
+
+def test_ascii_pcd_without_intensity(tmp_path):
+    path = tmp_path / "cloud.pcd"
+    path.write_text(
+        "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\nPOINTS 2\nDATA ascii\n1 2 3\n4.5 -5 6\n"
+    )
+    np.testing.assert_array_equal(read_pcd(path), np.array([[1, 2, 3, 0], [4.5, -5, 6, 0]], np.float32))
+    write_pcd(tmp_path / "b.pcd", np.array([[1, 2, 3, 0.5]], np.float32))
+    np.testing.assert_array_equal(read_pcd(tmp_path / "b.pcd"), [[1, 2, 3, 0.5]])
+
+
+def copy_scenario(generated: Path, tmp_path: Path) -> Path:
+    import shutil
+
+    source = find_scenarios(generated / "normal")[0]
+    return Path(shutil.copytree(source, tmp_path / source.name))
+
+
+def sensor_file(folder: Path, prefix: str, index: int) -> Path:
+    sensor = next(p for p in folder.iterdir() if p.name.startswith(prefix))
+    return sorted(sensor.iterdir())[index]
+
+
+@pytest.mark.parametrize("prefix", ["DEPTH_CAM", "RGB-CAM", "SEMANTIC-CAM", "LIDAR", "ACTION", "ROUTE_MAP"])
+def test_corrupt_file_names_the_file(tmp_path, generated, prefix):
+    folder = copy_scenario(generated, tmp_path)
+    bad = sensor_file(folder, prefix, 2)
+    bad.write_bytes(b"\x89PNG garbage" if bad.suffix != ".csv" else b"frame_id ; 3\nspeed ; fast\n")
+    scenario = AnoVoxScenario(folder)
+    with pytest.raises(DatasetError, match=bad.name.replace("(", r"\(").replace(")", r"\)")):
+        scenario[2]
+    scenario[1]  # other frames stay readable
+
+
+def test_missing_file_names_the_folder_and_frame(tmp_path, generated):
+    folder = copy_scenario(generated, tmp_path)
+    missing = sensor_file(folder, "SEMANTIC-CAM", 3)
+    missing.unlink()
+    scenario = AnoVoxScenario(folder)
+    with pytest.raises(DatasetError, match=rf"SEMANTIC-CAM.*frame {scenario.frame_ids[3]}"):
+        scenario[3]
+
+
+def test_missing_key_and_missing_folders(tmp_path, generated):
+    folder = copy_scenario(generated, tmp_path)
+    action = sensor_file(folder, "ACTION", 0)
+    action.write_text("frame_id ; 1\nthrottle ; 0.5\n")
+    with pytest.raises(DatasetError, match="'speed'"):
+        AnoVoxScenario(folder)[0]
+    with pytest.raises(DatasetError, match="no camera folder"):
+        AnoVoxScenario(tmp_path)
+    with pytest.raises(DatasetError, match="no such folder"):
+        find_scenarios(tmp_path / "nowhere")
+    assert find_scenarios(generated / "Scenario_Configuration_Files") == []
+
+
+def test_cli_writes_benchmark_and_preview(tmp_path):
+    from umad_common.cli import main
+
+    args = ["generate", "synthetic", str(tmp_path), "--normal", "1", "--anomalous", "1", "--frames", "3", "--size", "64x48"]
+    assert main([*args, "--preview", "--seed", "2"]) == 0
+    assert (tmp_path / "preview.png").is_file()
+    assert (tmp_path / "Scenario_Configuration_Files" / "scenario_config_map_Synthetic.json").is_file()
+    assert AnoVoxScenario(find_scenarios(tmp_path / "normal")[0])[0].rgb.shape == (48, 64, 3)
+    assert main(args) == 2  # refuses to write into a folder that already holds scenarios
+    with pytest.raises(SystemExit):
+        main(["generate", "synthetic", str(tmp_path / "x"), "--size", "64by48"])

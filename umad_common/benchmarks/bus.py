@@ -1,0 +1,114 @@
+"""`umad bench bus`: 1 MB frames through the hub between operator processes, against the same
+function chain called in one process. Both sides encode and decode every message, so the ratio is
+the price of the bus itself (transport, joining, acks), not of serialisation."""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field
+
+from umad_common.messages import Message, decode, encode
+from umad_common.operator import Input, Operator, Output, Source, SourceFrame
+
+
+class BlobSource(Source):
+    """Frames of `size_bytes` random bytes."""
+
+    kind = "bench_blob"
+    outputs = ("blob",)
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        frames: int = Field(200, description="frames to send")
+        size_bytes: int = Field(1 << 20, description="payload size per frame")
+        window: int = Field(8, description="frames in flight")
+
+    def frames(self):
+        blob = np.random.default_rng(0).integers(0, 255, self.params.size_bytes, dtype=np.uint8)
+        for seq in range(self.params.frames):
+            yield SourceFrame("bench", seq, seq, {"blob": Output({"data": blob})})
+
+
+class Relay(Operator):
+    """Passes the blob on, touching every byte (a checksum) as a real operator would read it."""
+
+    kind = "bench_relay"
+    inputs = (Input("blob"),)
+    outputs = ("blob",)
+
+    def process(self, frame):
+        data = frame.inputs["blob"].arrays["data"]
+        return {"blob": Output({"data": data}, {"sum": int(data[::4096].sum())})}
+
+
+class BlobSink(Operator):
+    kind = "bench_sink"
+    inputs = (Input("blob"),)
+    outputs = ("done",)
+
+    def process(self, frame):
+        return {"done": Output(meta={"bytes": int(frame.inputs["blob"].arrays["data"].nbytes)})}
+
+
+def in_process(frames: int, size_bytes: int) -> dict:
+    """The same chain, one process: encode -> decode -> relay -> encode -> decode -> sink."""
+    source, relay, sink = BlobSource({"frames": frames, "size_bytes": size_bytes}), Relay(), BlobSink()
+    from umad_common.operator import Frame
+
+    latencies = []
+    start = time.perf_counter()
+    for sf in source.frames():
+        t0 = time.perf_counter()
+        msg = decode(encode(Message(sf.run, sf.seq, sf.stamp_ns, "source", {}, sf.outputs["blob"].arrays)))
+        out = relay.process(Frame(sf.run, sf.seq, sf.stamp_ns, {"blob": msg}))["blob"]
+        msg2 = decode(encode(Message(sf.run, sf.seq, sf.stamp_ns, "relay", out.meta, out.arrays)))
+        sink.process(Frame(sf.run, sf.seq, sf.stamp_ns, {"blob": msg2}))
+        latencies.append(time.perf_counter() - t0)
+    elapsed = time.perf_counter() - start
+    lat = np.array(latencies) * 1e3
+    return {"fps": frames / elapsed, "p50_ms": float(np.percentile(lat, 50)), "p99_ms": float(np.percentile(lat, 99))}
+
+
+def over_bus(frames: int, size_bytes: int, hub: str) -> dict:
+    """source -> relay -> sink as three processes on a hub; latency is send-to-ack at the source."""
+    from umad_common.graph import load_graph
+    from umad_common.launcher import Launcher
+
+    graph_data = {
+        "name": "bench",
+        "hub": hub,
+        "operators": [
+            {"id": "source", "uses": f"{__name__}:BlobSource", "params": {"frames": frames, "size_bytes": size_bytes}},
+            {"id": "relay", "uses": f"{__name__}:Relay", "inputs": {"blob": "source/blob"}},
+            {"id": "sink", "uses": f"{__name__}:BlobSink", "inputs": {"blob": "relay/blob"}},
+        ],
+    }
+    path = Path(tempfile.mkdtemp(prefix="umad-bench-")) / "graph.yaml"
+    path.write_text(yaml.safe_dump(graph_data))
+    launcher = Launcher(load_graph(path), path, quiet=True)
+    start = time.perf_counter()
+    code = launcher.run()
+    if code != 0:
+        raise RuntimeError(f"bus benchmark graph failed with exit code {code}")
+    elapsed = time.perf_counter() - start
+    src = launcher.stats["source.r0"]
+    busy = src.get("busy_s") or elapsed
+    return {"fps": frames / busy, "p50_ms": src["p50_ms"], "p99_ms": src["p99_ms"], "wall_s_with_startup": elapsed}
+
+
+def bench_bus(frames: int = 300, size_bytes: int = 1 << 20, hub: str = "tcp/127.0.0.1:7449") -> dict:
+    local = in_process(frames, size_bytes)
+    bus = over_bus(frames, size_bytes, hub)
+    return {
+        "frames": frames,
+        "frame_bytes": size_bytes,
+        "in_process": local,
+        "bus": bus,
+        "fps_ratio_bus_over_in_process": bus["fps"] / local["fps"],
+        "p50_ratio_bus_over_in_process": bus["p50_ms"] / local["p50_ms"],
+    }

@@ -1,0 +1,71 @@
+"""`umad bench [bus|metrics|scaling|pipeline|all] [--out FILE.json]`: side-by-side ratios, one run.
+
+Each bench measures both sides of its ratio in the same run on the same machine, so the ratio is
+meaningful where the absolute numbers are not. Results are printed as Markdown and, with --out,
+written as JSON (and Markdown beside it).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+BENCHES = ("bus", "metrics", "scaling", "pipeline")
+
+
+def add_arguments(parser):
+    parser.add_argument("which", nargs="?", default="all", choices=[*BENCHES, "all"])
+    parser.add_argument("--out", type=Path, default=None, help="write results as JSON (and .md beside it)")
+    parser.add_argument("--frames", type=int, default=None, help="frames per bench (default: each bench's own)")
+    parser.add_argument("--pixels", type=int, default=10**8, help="pixels for the metrics bench")
+    parser.add_argument("--hub", default="tcp/127.0.0.1:7449", help="loopback endpoint the bench graphs use")
+
+
+def run(args) -> int:
+    which = BENCHES if args.which == "all" else (args.which,)
+    results = {}
+    for name in which:
+        print(f"running bench {name} ...", flush=True)
+        results[name] = _run_one(name, args)
+    md = to_markdown(results)
+    print(md)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(results, indent=2))
+        args.out.with_suffix(".md").write_text(md)
+    return 0
+
+
+def _run_one(name: str, args) -> dict:
+    if name == "bus":
+        from umad_common.benchmarks.bus import bench_bus
+
+        return bench_bus(frames=args.frames or 300, hub=args.hub)
+    if name == "metrics":
+        from umad_common.commands.bench_metrics import bench_metrics
+
+        return bench_metrics(args.pixels)
+    if name == "scaling":
+        from umad_common.benchmarks.scaling import bench_scaling
+
+        return bench_scaling(frames=args.frames or 40, hub=args.hub)
+    from umad_common.benchmarks.pipeline import bench_pipeline
+
+    return bench_pipeline(frames=args.frames or 30, hub=args.hub)
+
+
+def to_markdown(results: dict) -> str:
+    lines = ["| bench | measure | value |", "|---|---|---|"]
+    for bench, res in results.items():
+        for key, value in _flatten(res):
+            text = f"{value:.4g}" if isinstance(value, float) else str(value)
+            lines.append(f"| {bench} | {key} | {text} |")
+    return "\n".join(lines)
+
+
+def _flatten(obj: dict, prefix: str = ""):
+    for key, value in obj.items():
+        if isinstance(value, dict):
+            yield from _flatten(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value

@@ -1,0 +1,71 @@
+"""`umad generate synthetic OUT`: write the built-in synthetic driving benchmark (AnoVox generator layout).
+
+OUT/normal/Scenario_<uuid>/ holds drives without anomalies (training data), OUT/anomalous/ drives with
+one anomalous object on the road each (evaluation data). Same arguments, same bytes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import re
+import time
+from pathlib import Path
+
+log = logging.getLogger("umad.generate")
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'384x256' -> (384, 256)."""
+    match = re.fullmatch(r"(\d+)[xX](\d+)", text.strip())
+    if not match:
+        raise argparse.ArgumentTypeError(f"size {text!r} must look like WxH, e.g. 384x256")
+    width, height = int(match.group(1)), int(match.group(2))
+    if width < 16 or height < 16 or width % 2 or height % 2:
+        raise argparse.ArgumentTypeError(f"size {text!r}: width and height must be even and >= 16")
+    return width, height
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("out", type=Path, help="output folder (must not already hold normal/ or anomalous/ scenarios)")
+    parser.add_argument("--normal", type=int, default=12, help="number of normal drives (default 12, 2 per weather)")
+    parser.add_argument("--anomalous", type=int, default=6, help="number of drives with an anomaly (default 6)")
+    parser.add_argument("--frames", type=int, default=200, help="frames per drive at 10 Hz (default 200)")
+    parser.add_argument("--seed", type=int, default=0, help="master seed; same seed, same bytes (default 0)")
+    parser.add_argument("--size", type=parse_size, default=(384, 256), help="camera image size WxH (default 384x256)")
+    parser.add_argument("--preview", action="store_true", help="also write OUT/preview.png, a contact sheet")
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from umad_common.datasets.synthetic.generator import generate_benchmark, write_preview
+
+    for name in ("normal", "anomalous", "frames"):
+        if getattr(args, name) < (1 if name == "frames" else 0):
+            log.error("--%s must be %s, got %d", name, ">= 1" if name == "frames" else ">= 0", getattr(args, name))
+            return 2
+    out: Path = args.out
+    for split in ("normal", "anomalous"):
+        if (out / split).is_dir() and any((out / split).iterdir()):
+            log.error("%s already holds scenarios; choose an empty output folder", out / split)
+            return 2
+    total = (args.normal + args.anomalous) * args.frames
+    started = time.perf_counter()
+    with tqdm(total=total, unit="frame", desc="generate synthetic") as bar:
+        roots = generate_benchmark(
+            out, args.normal, args.anomalous, args.frames, args.seed, args.size, on_frame=bar.update
+        )
+    seconds = time.perf_counter() - started
+    log.info(
+        "wrote %d scenarios (%d frames) to %s in %.1f s (%.0f ms/frame)",
+        len(roots),
+        total,
+        out,
+        seconds,
+        1000 * seconds / max(total, 1),
+    )
+    if args.preview and roots:
+        write_preview(roots, out / "preview.png")
+        log.info("preview: %s", out / "preview.png")
+    return 0

@@ -1,0 +1,436 @@
+"""AnoVox scenarios on disk: a reader for both layouts and writers, as described in ANOVOX.md.
+
+Generator layout (the AnoVox generator's output; also what `umad generate synthetic` writes)::
+
+    Scenario_<uuid>/sensor_setup.json
+    Scenario_<uuid>/RGB-CAM(0, 0, 1.8)(0, 0, 0)_<hash>/RGB-CAM(0, 0, 1.8)(0, 0, 0)_<hash>_<frame>.png
+    ... DEPTH_CAM, SEMANTIC-CAM, INSTANCE-CAM, LIDAR (.npy), ACTION/ACTION_<frame>.csv,
+    ANOMALY/ANOMALY_<frame>.csv, ROUTE_MAP/ROUTE_MAP_<frame>.png
+
+Benchmark layout (the released dataset)::
+
+    Scenario_<uuid>/{RGB_IMG, SEMANTIC_IMG, DEPTH_IMG, PCD, ...}/<TYPE>_<frame>.<ext>
+
+A folder is read as it is. A sensor folder that is absent gives `None` for that modality; a folder
+that is present but lacks one frame's file, or a file that cannot be decoded, raises DatasetError
+naming the file.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ANOMALY_TAGS = (29, 30, 31, 32, 33, 34, 100)
+GENERIC_ANOMALY_TAG = 100
+ANOMALY_COLOUR = (245, 0, 0)  # benchmark SEMANTIC_IMG colour of every anomaly pixel
+DEPTH_SCALE = 1000.0 / (2**24 - 1)  # CARLA raw depth: metres per unit of R + 256 G + 65536 B
+KMH_PER_MPS = 3.6
+
+# CARLA 0.9.14 CityScapes palette (RGB) by semantic tag.
+CARLA_PALETTE = {
+    0: (0, 0, 0), 1: (128, 64, 128), 2: (244, 35, 232), 3: (70, 70, 70), 4: (102, 102, 156), 5: (190, 153, 153),
+    6: (153, 153, 153), 7: (250, 170, 30), 8: (220, 220, 0), 9: (107, 142, 35), 10: (152, 251, 152),
+    11: (70, 130, 180), 12: (220, 20, 60), 13: (255, 0, 0), 14: (0, 0, 142), 15: (0, 0, 70), 16: (0, 60, 100),
+    17: (0, 80, 100), 18: (0, 0, 230), 19: (119, 11, 32), 20: (110, 190, 160), 21: (170, 120, 50),
+    22: (55, 90, 80), 23: (45, 60, 150), 24: (157, 234, 50), 25: (81, 0, 81), 26: (150, 100, 100),
+    27: (230, 150, 140), 28: (180, 165, 180),
+}  # fmt: skip
+
+_FRAME_NUMBER = re.compile(r"_(\d+)\.[A-Za-z0-9]+$")
+_GENERATOR_SENSORS = {  # modality -> accepted folder-name prefixes
+    "rgb": ("RGB-CAM", "RGB_CAM"),
+    "depth": ("DEPTH_CAM", "DEPTH-CAM"),
+    "semantic": ("SEMANTIC-CAM", "SEMANTIC_CAM"),
+    "instance": ("INSTANCE-CAM", "INSTANCE_CAM"),
+    "lidar": ("LIDAR",),
+    "action": ("ACTION",),
+    "route": ("ROUTE_MAP",),
+}
+_BENCHMARK_SENSORS = {"rgb": "RGB_IMG", "depth": "DEPTH_IMG", "semantic": "SEMANTIC_IMG", "lidar": "PCD"}
+
+
+class DatasetError(ValueError):
+    """A scenario folder or file that cannot be read; the message names the path and what was expected."""
+
+
+@dataclass(frozen=True)
+class EgoState:
+    """The ego's speed (m/s) and controls (CARLA ranges: throttle, brake in [0, 1], steer in [-1, 1])."""
+
+    speed_mps: float = 0.0
+    throttle: float = 0.0
+    brake: float = 0.0
+    steer: float = 0.0
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.speed_mps, self.throttle, self.brake, self.steer], np.float32)
+
+
+@dataclass
+class AnoVoxFrame:
+    frame_id: int
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray | None  # (H, W) float32 metres
+    semantic: np.ndarray | None  # (H, W) uint8 CARLA tags
+    instance: np.ndarray | None  # (H, W) int32 object ids, 0 = none
+    anomaly: np.ndarray  # (H, W) uint8 0 / 1
+    lidar: np.ndarray | None  # (N, 4) float32 (x, -y, z, intensity)
+    ego: EgoState
+    route: np.ndarray | None  # (192, 192) uint8
+
+
+def is_scenario_dir(path: Path) -> bool:
+    """A Scenario_* folder that holds a camera folder of either layout."""
+    if not (path.is_dir() and path.name.startswith("Scenario_")):
+        return False
+    return any(
+        p.is_dir() and (p.name == "RGB_IMG" or p.name.startswith(_GENERATOR_SENSORS["rgb"])) for p in path.iterdir()
+    )
+
+
+def find_scenarios(root: str | Path) -> list[Path]:
+    """Every scenario folder under root (root itself if it is one), sorted by path."""
+    root = Path(root)
+    if not root.exists():
+        raise DatasetError(
+            f"{root}: no such folder; expected an AnoVox scenario folder or a folder containing Scenario_* folders"
+        )
+    if is_scenario_dir(root):
+        return [root]
+    return sorted(p for p in root.rglob("Scenario_*") if is_scenario_dir(p))
+
+
+def frame_number(path: Path) -> int | None:
+    match = _FRAME_NUMBER.search(path.name)
+    return int(match.group(1)) if match else None
+
+
+def _index_folder(folder: Path) -> dict[int, Path]:
+    """frame id -> file for every file in the folder whose name ends in _<frame>.<ext>."""
+    files = {}
+    for p in folder.iterdir():
+        n = frame_number(p)
+        if n is not None and p.is_file():
+            files[n] = p
+    return files
+
+
+def read_png(path: Path, channels: tuple[int, ...], what: str) -> np.ndarray:
+    """cv2 image as stored (BGR order for colour), checked for existence, decodability, channel count."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: file is missing; expected {what}")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise DatasetError(f"{path}: cannot be decoded; expected {what}")
+    n = 1 if image.ndim == 2 else image.shape[2]
+    if n not in channels or image.dtype != np.uint8:
+        raise DatasetError(f"{path}: has {n} channel(s) of {image.dtype}; expected {what}")
+    return image
+
+
+def decode_depth(bgr: np.ndarray) -> np.ndarray:
+    """CARLA raw depth PNG (as loaded by cv2, BGR) -> metres."""
+    b, g, r = (bgr[..., k].astype(np.float64) for k in range(3))
+    return ((r + 256.0 * g + 65536.0 * b) * DEPTH_SCALE).astype(np.float32)
+
+
+def encode_depth(depth_m: np.ndarray) -> np.ndarray:
+    """Metres -> CARLA raw depth as a BGR uint8 image for cv2.imwrite (clipped to 0..1000 m)."""
+    units = np.round(np.clip(depth_m, 0, 1000.0) / DEPTH_SCALE).astype(np.int64)
+    return np.stack([(units >> 16) & 255, (units >> 8) & 255, units & 255], axis=-1).astype(np.uint8)
+
+
+def read_key_values(path: Path) -> dict[str, str]:
+    """AnoVox `key ; value` csv -> dict (values as stripped strings)."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: file is missing; expected `key ; value` lines")
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot be read as text ({exc}); expected `key ; value` lines") from None
+    values = {}
+    for line in lines:
+        if line.strip():
+            key, sep, value = line.partition(";")
+            if not sep:
+                raise DatasetError(f"{path}: line {line!r} has no ';'; expected `key ; value` lines")
+            values[key.strip()] = value.strip()
+    return values
+
+
+def write_key_values(path: Path, values: dict[str, object]) -> None:
+    path.write_text("".join(f"{key} ; {value}\n" for key, value in values.items()), encoding="utf-8")
+
+
+def read_ego(path: Path) -> EgoState:
+    """ACTION csv -> EgoState, by key; speed converted from km/h to m/s."""
+    values = read_key_values(path)
+    out = {}
+    for key in ("speed", "throttle", "brake", "steer"):
+        if key not in values:
+            raise DatasetError(f"{path}: no {key!r} line; expected keys speed (km/h), throttle, brake, steer")
+        try:
+            out[key] = float(values[key])
+        except ValueError:
+            raise DatasetError(f"{path}: {key} = {values[key]!r} is not a number") from None
+    return EgoState(out["speed"] / KMH_PER_MPS, out["throttle"], out["brake"], out["steer"])
+
+
+def read_npy_cloud(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise DatasetError(f"{path}: file is missing; expected a float32 [N, 4] lidar .npy")
+    try:
+        cloud = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{path}: cannot be loaded ({exc}); expected a float32 [N, 4] lidar .npy") from None
+    if cloud.ndim != 2 or cloud.shape[1] < 4:
+        raise DatasetError(f"{path}: lidar array has shape {cloud.shape}; expected [N, 4] (x, -y, z, intensity)")
+    return np.ascontiguousarray(cloud[:, :4], dtype=np.float32)
+
+
+_PCD_TYPES = {
+    ("F", 4): "<f4",
+    ("F", 8): "<f8",
+    ("U", 1): "u1",
+    ("U", 2): "<u2",
+    ("U", 4): "<u4",
+    ("I", 1): "i1",
+    ("I", 2): "<i2",
+    ("I", 4): "<i4",
+}
+
+
+def read_pcd(path: Path) -> np.ndarray:
+    """ASCII or binary PCD -> (N, 4) float32 (x, y, z, intensity; intensity 0 if absent)."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: file is missing; expected a PCD point cloud")
+    raw = path.read_bytes()
+    header, fields, sizes, types, counts, points, fmt, offset = {}, [], [], [], [], None, None, 0
+    try:
+        while fmt is None:
+            end = raw.index(b"\n", offset)
+            line = raw[offset:end].decode("ascii").strip()
+            offset = end + 1
+            if not line or line.startswith("#"):
+                continue
+            key, *rest = line.split()
+            header[key.upper()] = rest
+            if key.upper() == "DATA":
+                fmt = rest[0].lower()
+        fields, sizes = header["FIELDS"], [int(v) for v in header["SIZE"]]
+        types, counts = header["TYPE"], [int(v) for v in header.get("COUNT", ["1"] * len(fields))]
+        points = int(header["POINTS"][0])
+        dtype = np.dtype(
+            [(f, _PCD_TYPES[(t, s)], (c,)) for f, s, t, c in zip(fields, sizes, types, counts, strict=True)]
+        )
+    except (ValueError, KeyError, UnicodeDecodeError, IndexError) as exc:
+        raise DatasetError(
+            f"{path}: malformed PCD header ({type(exc).__name__}: {exc}); expected FIELDS/SIZE/TYPE/POINTS/DATA"
+        ) from None
+    if "x" not in fields or "y" not in fields or "z" not in fields:
+        raise DatasetError(f"{path}: PCD fields {fields}; expected x, y, z (and intensity)")
+    if fmt == "binary":
+        if len(raw) - offset < points * dtype.itemsize:
+            raise DatasetError(
+                f"{path}: binary PCD holds {len(raw) - offset} data bytes; expected {points * dtype.itemsize}"
+            )
+        data = np.frombuffer(raw, dtype, count=points, offset=offset)
+        cols = [data[f][:, 0].astype(np.float32) for f in ("x", "y", "z")]
+    elif fmt == "ascii":
+        try:
+            table = np.loadtxt(raw[offset:].decode("ascii").splitlines(), dtype=np.float64, ndmin=2)
+        except ValueError as exc:
+            raise DatasetError(f"{path}: ASCII PCD data unreadable ({exc})") from None
+        if table.shape[0] != points:
+            raise DatasetError(f"{path}: ASCII PCD has {table.shape[0]} rows; expected POINTS {points}")
+        starts = np.cumsum([0] + counts)
+        data = {f: table[:, starts[k]] for k, f in enumerate(fields)}
+        cols = [data[f].astype(np.float32) for f in ("x", "y", "z")]
+    else:
+        raise DatasetError(f"{path}: PCD DATA {fmt!r} is not supported; expected ascii or binary")
+    name = "intensity" if "intensity" in fields else ("i" if "i" in fields else None)
+    if name is None:
+        intensity = np.zeros(points, np.float32)
+    else:
+        intensity = (data[name][:, 0] if fmt == "binary" else data[name]).astype(np.float32)
+    return np.stack(cols + [intensity], axis=1)
+
+
+def write_pcd(path: Path, cloud: np.ndarray, binary: bool = True) -> None:
+    """(N, 4) float32 cloud -> PCD with fields x y z intensity (binary: bit-exact)."""
+    cloud = np.ascontiguousarray(cloud[:, :4], dtype="<f4")
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z intensity\nSIZE 4 4 4 4\n"
+        f"TYPE F F F F\nCOUNT 1 1 1 1\nWIDTH {len(cloud)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(cloud)}\n"
+        f"DATA {'binary' if binary else 'ascii'}\n"
+    )
+    body = (
+        cloud.tobytes() if binary else "".join(" ".join(repr(float(v)) for v in row) + "\n" for row in cloud).encode()
+    )
+    path.write_bytes(header.encode("ascii") + body)
+
+
+def semantic_to_colour(semantic: np.ndarray) -> np.ndarray:
+    """CARLA tags -> RGB palette image; every anomaly tag becomes ANOMALY_COLOUR."""
+    lut = np.zeros((256, 3), np.uint8)
+    for tag, colour in CARLA_PALETTE.items():
+        lut[tag] = colour
+    lut[list(ANOMALY_TAGS)] = ANOMALY_COLOUR
+    return lut[semantic]
+
+
+def colour_to_semantic(rgb: np.ndarray) -> np.ndarray:
+    """RGB palette image -> CARLA tags (anomaly colour -> 100, unknown colours -> 0)."""
+    key = (rgb[..., 0].astype(np.int64) << 16) | (rgb[..., 1].astype(np.int64) << 8) | rgb[..., 2]
+    table = {(r << 16) | (g << 8) | b: tag for tag, (r, g, b) in CARLA_PALETTE.items()}
+    r, g, b = ANOMALY_COLOUR
+    table[(r << 16) | (g << 8) | b] = GENERIC_ANOMALY_TAG
+    values, inverse = np.unique(key, return_inverse=True)
+    tags = np.array([table.get(int(v), 0) for v in values], np.uint8)
+    return tags[inverse].reshape(key.shape)
+
+
+class AnoVoxScenario:
+    """One scenario folder of either layout; frames load lazily by index.
+
+    Args:
+        path: the Scenario_* folder.
+        every: keep every k-th frame (k >= 1), counted in the sorted frame ids.
+    """
+
+    def __init__(self, path: str | Path, every: int = 1):
+        self.path = Path(path)
+        if every < 1:
+            raise ValueError(f"every must be >= 1, got {every}")
+        if not self.path.is_dir():
+            raise DatasetError(f"{self.path}: no such scenario folder")
+        self.name = self.path.name
+        subdirs = {p.name: p for p in self.path.iterdir() if p.is_dir()}
+        self.folders: dict[str, Path] = {}
+        if "RGB_IMG" in subdirs:
+            self.layout = "benchmark"
+            self.folders = {key: subdirs[name] for key, name in _BENCHMARK_SENSORS.items() if name in subdirs}
+        else:
+            self.layout = "generator"
+            for key, prefixes in _GENERATOR_SENSORS.items():
+                matches = sorted(n for n in subdirs if n.startswith(prefixes))
+                if matches:
+                    self.folders[key] = subdirs[matches[0]]
+        if "rgb" not in self.folders:
+            raise DatasetError(
+                f"{self.path}: no camera folder; expected RGB_IMG/ (benchmark layout) or RGB-CAM(...)_<hash>/ (generator layout)"
+            )
+        self._files = {key: _index_folder(folder) for key, folder in self.folders.items()}
+        all_ids = sorted(self._files["rgb"])
+        if not all_ids:
+            raise DatasetError(f"{self.folders['rgb']}: no image files named *_<frame>.png")
+        self.every = every
+        self.frame_ids: list[int] = all_ids[::every]
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def __repr__(self) -> str:
+        return f"AnoVoxScenario({str(self.path)!r}, layout={self.layout!r}, frames={len(self)}, every={self.every})"
+
+    def _file(self, key: str, frame_id: int) -> Path | None:
+        """The file of one modality for a frame; None if the modality's folder is absent."""
+        if key not in self.folders:
+            return None
+        path = self._files[key].get(frame_id)
+        if path is None:
+            raise DatasetError(
+                f"{self.folders[key]}: no file for frame {frame_id}; expected a file named *_{frame_id}.<ext> like the other frames"
+            )
+        return path
+
+    def __getitem__(self, index: int) -> AnoVoxFrame:
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"frame index {index} out of range for {len(self)} frames of {self.name}")
+        frame_id = self.frame_ids[index]
+        rgb_path = self._file("rgb", frame_id)
+        rgb = read_png(rgb_path, (3, 4), "an 8-bit RGB PNG")[..., 2::-1].copy()
+        shape = rgb.shape[:2]
+
+        def same_shape(array: np.ndarray, path: Path) -> np.ndarray:
+            if array.shape[:2] != shape:
+                raise DatasetError(
+                    f"{path}: image is {array.shape[1]}x{array.shape[0]}; expected {shape[1]}x{shape[0]} like the RGB image"
+                )
+            return array
+
+        depth = semantic = instance = lidar = route = None
+        if (path := self._file("depth", frame_id)) is not None:
+            depth = same_shape(decode_depth(read_png(path, (3, 4), "a CARLA raw depth PNG (RGB)")), path)
+        anomaly = np.zeros(shape, np.uint8)
+        if (path := self._file("semantic", frame_id)) is not None:
+            if self.layout == "benchmark":
+                colour = read_png(path, (3, 4), "an RGB palette-coded semantic PNG")[..., 2::-1]
+                semantic = same_shape(colour_to_semantic(colour), path)
+                anomaly = np.all(colour == ANOMALY_COLOUR, axis=-1).astype(np.uint8)
+            else:
+                image = read_png(path, (1, 3, 4), "a semantic PNG of CARLA tags")
+                semantic = same_shape(image if image.ndim == 2 else image[..., 2].copy(), path)
+                anomaly = np.isin(semantic, ANOMALY_TAGS).astype(np.uint8)
+        if (path := self._file("instance", frame_id)) is not None:
+            image = read_png(path, (1, 3, 4), "an instance PNG (R = tag, G, B = object id)")
+            ids = (
+                image.astype(np.int32)
+                if image.ndim == 2
+                else image[..., 1].astype(np.int32) + 256 * image[..., 0].astype(np.int32)
+            )
+            instance = same_shape(ids, path)
+        if (path := self._file("lidar", frame_id)) is not None:
+            lidar = read_pcd(path) if self.layout == "benchmark" else read_npy_cloud(path)
+        ego = EgoState()
+        if (path := self._file("action", frame_id)) is not None:
+            ego = read_ego(path)
+        if (path := self._file("route", frame_id)) is not None:
+            route = read_png(path, (1, 3, 4), "a 192x192 grayscale route PNG")
+            route = route if route.ndim == 2 else route[..., 0].copy()
+        return AnoVoxFrame(frame_id, rgb, depth, semantic, instance, anomaly, lidar, ego, route)
+
+    def __iter__(self):
+        for index in range(len(self)):
+            yield self[index]
+
+
+def write_benchmark_scenario(
+    frames: Iterable[AnoVoxFrame], out_root: str | Path, name: str, binary_pcd: bool = True
+) -> Path:
+    """Write frames in the benchmark layout: RGB_IMG, SEMANTIC_IMG (palette colours, anomalies
+    (245, 0, 0)), DEPTH_IMG (CARLA raw encoding) and PCD (x y z intensity) where the frame has them.
+
+    Returns:
+        The new Scenario folder `out_root/name`.
+    """
+    if not name.startswith("Scenario_"):
+        raise ValueError(f"scenario name {name!r} must start with 'Scenario_'")
+    root = Path(out_root) / name
+    for frame in frames:
+        fid = frame.frame_id
+        targets = {
+            "RGB_IMG": frame.rgb is not None,
+            "SEMANTIC_IMG": frame.semantic is not None,
+            "DEPTH_IMG": frame.depth is not None,
+            "PCD": frame.lidar is not None,
+        }
+        for folder, present in targets.items():
+            if present:
+                (root / folder).mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(root / "RGB_IMG" / f"RGB_IMG_{fid}.png"), frame.rgb[..., ::-1])
+        if frame.semantic is not None:
+            colour = semantic_to_colour(frame.semantic)
+            colour[frame.anomaly.astype(bool)] = ANOMALY_COLOUR
+            cv2.imwrite(str(root / "SEMANTIC_IMG" / f"SEMANTIC_IMG_{fid}.png"), colour[..., ::-1])
+        if frame.depth is not None:
+            cv2.imwrite(str(root / "DEPTH_IMG" / f"DEPTH_IMG_{fid}.png"), encode_depth(frame.depth))
+        if frame.lidar is not None:
+            write_pcd(root / "PCD" / f"PCD_{fid}.pcd", frame.lidar, binary=binary_pcd)
+    return root

@@ -1,0 +1,206 @@
+"""Writes synthetic drives in the AnoVox generator layout, and a preview contact sheet.
+
+Output is a pure function of the arguments: scenario seeds, folder uuids and first frame ids come
+from one seeded generator, PNGs are written by cv2 (deterministic zlib), files carry no timestamps.
+Normal drives cycle through every weather preset, so a model trained on them has seen each one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import uuid
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from umad_common.datasets.anovox import KMH_PER_MPS, AnoVoxScenario, encode_depth, semantic_to_colour, write_key_values
+from umad_common.datasets.synthetic.anomalies import CATEGORIES
+from umad_common.datasets.synthetic.render import WEATHER_NAMES, CameraSpec, LidarSpec
+from umad_common.datasets.synthetic.scenario import SyntheticScenario
+
+MOUNT = "(0, 0, 1.8)(0, 0, 0)"
+PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 3]
+EGO_TYPE = "vehicle.lincoln.mkz_2020"
+
+
+@dataclass(frozen=True)
+class ScenarioPlan:
+    """What one scenario of a generated benchmark is, fixed before anything is rendered."""
+
+    split: str  # "normal" or "anomalous"
+    scenario_id: str  # uuid4 string
+    seed: int
+    weather: str
+    anomaly: str | None  # AnoVox category or None
+    first_frame_id: int
+
+
+def plan_benchmark(normal: int, anomalous: int, seed: int) -> list[ScenarioPlan]:
+    """Scenario plans: normal drives cycle through all weathers; anomalous ones through categories
+    and weathers."""
+    rng = np.random.default_rng(seed)
+    plans = []
+    for split, count in (("normal", normal), ("anomalous", anomalous)):
+        for k in range(count):
+            scenario_id = str(uuid.UUID(bytes=rng.bytes(16), version=4))
+            scenario_seed = int(rng.integers(2**31))
+            first = int(rng.integers(1_000, 60_000))
+            weather = (
+                WEATHER_NAMES[k % len(WEATHER_NAMES)]
+                if split == "normal"
+                else WEATHER_NAMES[(k * 5 + 1) % len(WEATHER_NAMES)]
+            )
+            category = CATEGORIES[k % len(CATEGORIES)] if split == "anomalous" else None
+            plans.append(ScenarioPlan(split, scenario_id, scenario_seed, weather, category, first))
+    return plans
+
+
+def sensor_setup(camera: CameraSpec, lidar: LidarSpec) -> dict[str, dict]:
+    """sensor_setup.json content keyed by the sensor folder name `<TYPE>(loc)(rot)_<hash>`."""
+    cam_args = {"image_size_x": camera.width, "image_size_y": camera.height, "fov": camera.fov_deg}
+    lidar_args = {
+        "channels": lidar.channels, "upper_fov": lidar.upper_deg, "lower_fov": lidar.lower_deg, "range": lidar.max_range,
+        "points_per_second": lidar.channels * lidar.azimuth_bins * 10, "rotation_frequency": 10,
+    }  # fmt: skip
+    sensors = {
+        "RGB-CAM": ("sensor.camera.rgb", "png", cam_args),
+        "DEPTH_CAM": ("sensor.camera.depth", "png", cam_args),
+        "SEMANTIC-CAM": ("sensor.camera.semantic_segmentation", "png", cam_args),
+        "INSTANCE-CAM": ("sensor.camera.instance_segmentation", "png", cam_args),
+        "LIDAR": ("sensor.lidar.ray_cast", "npy", lidar_args),
+    }
+    setup = {}
+    for kind, (sensor_type, ending, args) in sensors.items():
+        digest = hashlib.sha1(json.dumps([sensor_type, args], sort_keys=True).encode()).hexdigest()[:8]
+        setup[f"{kind}{MOUNT}_{digest}"] = {
+            "sensor_type": sensor_type, "location": [0, 0, 1.8], "rotation": [0, 0, 0],
+            "file_ending": ending, "args": args, "save_data": True,
+        }  # fmt: skip
+    return setup
+
+
+def _carla_triplet(x: float, y: float, z: float) -> str:
+    """A world vector in CARLA's left-handed axes (y to the right)."""
+    return f"({x:.4f}, {-y:.4f}, {z:.4f})"
+
+
+def write_scenario(
+    scenario: SyntheticScenario, plan: ScenarioPlan, out_dir: Path, on_frame: Callable[[], None] | None = None
+) -> Path:
+    """Render every frame of a scenario and write it as `out_dir/Scenario_<uuid>/` (generator layout)."""
+    root = out_dir / f"Scenario_{plan.scenario_id}"
+    setup = sensor_setup(scenario.camera, scenario.lidar)
+    folders = {name.split("(")[0]: root / name for name in setup}
+    for folder in [*folders.values(), root / "ACTION", root / "ROUTE_MAP"] + (
+        [root / "ANOMALY"] if scenario.anomaly else []
+    ):
+        folder.mkdir(parents=True, exist_ok=False)
+    (root / "sensor_setup.json").write_text(json.dumps(setup, indent=2, sort_keys=True) + "\n")
+    for i in range(scenario.frames):
+        fid = plan.first_frame_id + i
+        frame = scenario.render(i)
+        cam = frame.camera
+        paths = {kind: str(folder / f"{folder.name}_{fid}") for kind, folder in folders.items()}
+        cv2.imwrite(paths["RGB-CAM"] + ".png", cam.rgb[..., ::-1], PNG_PARAMS)
+        cv2.imwrite(paths["DEPTH_CAM"] + ".png", encode_depth(cam.depth), PNG_PARAMS)
+        cv2.imwrite(paths["SEMANTIC-CAM"] + ".png", cam.semantic, PNG_PARAMS)
+        ids = cam.instance  # R = tag, G = id low byte, B = id high byte (cv2 writes BGR)
+        instance_bgr = np.stack([(ids >> 8) & 255, ids & 255, cam.semantic], axis=-1).astype(np.uint8)
+        cv2.imwrite(paths["INSTANCE-CAM"] + ".png", instance_bgr, PNG_PARAMS)
+        np.save(paths["LIDAR"] + ".npy", frame.lidar)
+        cv2.imwrite(str(root / "ROUTE_MAP" / f"ROUTE_MAP_{fid}.png"), frame.route, PNG_PARAMS)
+        x, y, heading = frame.pose
+        write_key_values(root / "ACTION" / f"ACTION_{fid}.csv", {
+            "frame_id": fid, "scenario_id": plan.scenario_id, "vehicle_id": 1, "vehicle_type_id": EGO_TYPE,
+            "speed": f"{frame.speed * KMH_PER_MPS:.6f}", "throttle": f"{frame.throttle:.6f}", "steer": f"{frame.steer:.6f}",
+            "brake": f"{frame.brake:.6f}", "hand_brake": False, "reverse": False, "gear": 1 if frame.speed > 0 else 0,
+            "location": _carla_triplet(x, y, 0.0), "rotation": f"(0.0000, {-np.degrees(heading):.4f}, 0.0000)",
+        })  # fmt: skip
+        if scenario.anomaly is not None:
+            a = scenario.anomaly
+            write_key_values(root / "ANOMALY" / f"ANOMALY_{fid}.csv", {
+                "frame_id": fid, "scenario_id": plan.scenario_id, "anomaly_id": a.inst, "anomaly_type_id": a.shape.type_id,
+                "anomaly_is_alive": True, "semantic_tags": f"[{a.shape.tag}]", "location": _carla_triplet(*a.position),
+                "rotation": f"(0.0000, {-np.degrees(a.yaw):.4f}, 0.0000)", "velocity": "(0.0000, 0.0000, 0.0000)",
+                "acceleration": "(0.0000, 0.0000, 0.0000)", "size": "({:.4f}, {:.4f}, {:.4f})".format(*a.shape.size),
+                "behaviour": a.behaviour,
+            })  # fmt: skip
+        if on_frame is not None:
+            on_frame()
+    return root
+
+
+def scenario_record(plan: ScenarioPlan, scenario: SyntheticScenario) -> dict:
+    """One entry of Scenario_Configuration_Files/scenario_config_map_Synthetic.json."""
+    record = asdict(plan) | {
+        "frames": scenario.frames,
+        "style": scenario.style.name,
+        "image_size": [scenario.camera.width, scenario.camera.height],
+    }
+    if scenario.anomaly is not None:
+        a = scenario.anomaly
+        record |= {"anomaly_type_id": a.shape.type_id, "anomaly_tag": a.shape.tag, "behaviour": a.behaviour}
+    return record
+
+
+def generate_benchmark(
+    out: Path,
+    normal: int,
+    anomalous: int,
+    frames: int,
+    seed: int,
+    size: tuple[int, int],
+    on_frame: Callable[[], None] | None = None,
+) -> list[Path]:
+    """Write OUT/normal/Scenario_*, OUT/anomalous/Scenario_* and the scenario config file."""
+    camera = CameraSpec(width=size[0], height=size[1])
+    records, roots = [], []
+    for plan in plan_benchmark(normal, anomalous, seed):
+        scenario = SyntheticScenario(plan.seed, frames, plan.anomaly, plan.weather, camera=camera)
+        (out / plan.split).mkdir(parents=True, exist_ok=True)
+        roots.append(write_scenario(scenario, plan, out / plan.split, on_frame))
+        records.append(scenario_record(plan, scenario))
+    config_dir = out / "Scenario_Configuration_Files"
+    config_dir.mkdir(parents=True, exist_ok=True)
+    (config_dir / "scenario_config_map_Synthetic.json").write_text(
+        json.dumps({"seed": seed, "scenarios": records}, indent=2, sort_keys=True) + "\n"
+    )
+    return roots
+
+
+def _label(image: np.ndarray, text: str) -> np.ndarray:
+    out = image.copy()
+    cv2.putText(out, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(out, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+def write_preview(scenario_dirs: list[Path], path: Path, rows: int = 6) -> None:
+    """Contact sheet, one row per scenario: rgb | semantic (CARLA colours) | depth | anomaly overlay.
+
+    Anomalous rows show the sampled frame with the most anomaly pixels."""
+    normal = [d for d in scenario_dirs if d.parent.name == "normal"][: rows // 2]
+    anomalous = [d for d in scenario_dirs if d.parent.name == "anomalous"][: rows - len(normal)]
+    lines = []
+    for folder in normal + anomalous:
+        scenario = AnoVoxScenario(folder)
+        candidates = [scenario[int(len(scenario) * q)] for q in (0.3, 0.5, 0.7, 0.9)]
+        frame = max(candidates, key=lambda f: int(f.anomaly.sum())) if folder in anomalous else candidates[1]
+        depth = np.log(np.clip(frame.depth, 1, 1000)) / np.log(1000)
+        depth_bgr = cv2.applyColorMap(np.round(255 * (1 - depth)).astype(np.uint8), cv2.COLORMAP_MAGMA)
+        overlay = frame.rgb[..., ::-1].astype(np.float64)
+        mask = frame.anomaly.astype(bool)
+        overlay[mask] = 0.4 * overlay[mask] + 0.6 * np.array([0, 0, 255])
+        title = f"{folder.parent.name} {folder.name[:17]} frame {frame.frame_id}"
+        cells = [
+            _label(frame.rgb[..., ::-1], title),
+            semantic_to_colour(frame.semantic)[..., ::-1],
+            depth_bgr,
+            _label(overlay.astype(np.uint8), f"anomaly px {int(mask.sum())}"),
+        ]
+        lines.append(np.concatenate(cells, axis=1))
+    cv2.imwrite(str(path), np.concatenate(lines, axis=0), PNG_PARAMS)
