@@ -51,20 +51,20 @@ class SegmenterParams(BaseModel):
     )
     gt_stuff_min_area: int = Field(default=16, ge=1, description="gt: stuff regions smaller than this get no mask")
     felzenszwalb_scale: float = Field(default=100.0, gt=0, description="felzenszwalb: larger -> fewer, larger segments")
-    felzenszwalb_sigma: float = Field(default=0.5, ge=0, description="felzenszwalb: Gaussian pre-smoothing (px)")
-    felzenszwalb_min_size: int = Field(default=20, ge=1, description="felzenszwalb: smallest segment (px)")
-    slic_n_segments: int = Field(default=300, ge=1, description="slic: approximate number of superpixels")
+    felzenszwalb_sigma: float = Field(default=0.3, ge=0, description="felzenszwalb: Gaussian pre-smoothing (px)")
+    felzenszwalb_min_size: int = Field(default=15, ge=1, description="felzenszwalb: smallest segment (px)")
+    slic_n_segments: int = Field(default=100, ge=1, description="slic: approximate number of superpixels")
     slic_compactness: float = Field(
-        default=10.0, gt=0, description="slic: colour vs position balance; larger -> squarer superpixels"
+        default=20.0, gt=0, description="slic: colour vs position balance; larger -> squarer superpixels"
     )
     slic_sigma: float = Field(default=1.0, ge=0, description="slic: Gaussian pre-smoothing (px)")
-    kmeans_clusters: int = Field(default=16, ge=2, description="kmeans: number of feature clusters")
+    kmeans_clusters: int = Field(default=32, ge=2, description="kmeans: number of feature clusters")
     kmeans_sigma: float = Field(default=1.0, ge=0, description="kmeans: Gaussian pre-smoothing of the image (px)")
     kmeans_position_weight: float = Field(
-        default=0.5, ge=0, description="kmeans: weight of the (y, x) position features against Lab colour"
+        default=0.25, ge=0, description="kmeans: weight of the (y, x) position features against Lab colour"
     )
     kmeans_gradient_weight: float = Field(
-        default=1.0, ge=0, description="kmeans: weight of the local lightness-gradient feature"
+        default=0.0, ge=0, description="kmeans: weight of the local lightness-gradient feature"
     )
     kmeans_features: Literal["colour", "feature_net"] = Field(
         default="colour",
@@ -78,6 +78,9 @@ class SegmenterParams(BaseModel):
     )
     kmeans_feature_weight: float = Field(
         default=1.0, gt=0, description="kmeans with feature_net: scale of the net's features against position"
+    )
+    kmeans_fit_stride: int = Field(
+        default=3, ge=1, description="kmeans: fit centroids on every n-th pixel per direction, then assign all"
     )
     kmeans_min_area: int = Field(
         default=8, ge=1, description="kmeans: connected regions smaller than this get no mask (px)"
@@ -142,12 +145,15 @@ class Segmenter(Operator):
             features = FeatureNetFeatures(
                 self.context.resolve(p.kmeans_feature_net), p.kmeans_feature_weight, p.kmeans_position_weight
             )
-            return lambda image, frame: kmeans_masks(features(image), p.kmeans_clusters, p.kmeans_min_area)
+            return lambda image, frame: kmeans_masks(
+                features(image), p.kmeans_clusters, p.kmeans_min_area, p.kmeans_fit_stride
+            )
         if p.method == "kmeans":
             return lambda image, frame: kmeans_masks(
                 colour_features(image, p.kmeans_sigma, p.kmeans_position_weight, p.kmeans_gradient_weight),
                 p.kmeans_clusters,
                 p.kmeans_min_area,
+                p.kmeans_fit_stride,
             )
         if not p.sam_checkpoint:
             raise ValueError("segmenter method 'sam' needs parameter sam_checkpoint (a local checkpoint file)")

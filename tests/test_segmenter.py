@@ -184,7 +184,10 @@ def test_quality_counts_anomaly_pixels_in_masks_at_least_half_anomaly():
     masks[0, :2, :3] = True  # 3 of 6 px anomaly: exactly half -> covers A
     masks[1, 2:, 3:] = True  # 2 of 6 px anomaly: a third -> covers nothing
     masks[2, 1, 4:] = True  # 0 anomaly, one ignored pixel
-    total, covered, best = frame_quality(masks, anomaly)
+    total, covered, best, normal_area, normal = frame_quality(masks, anomaly)
     assert (total, covered) == (5, 3)
     assert best == pytest.approx([3 / 6, 2 / 6])
-    assert frame_quality(masks[:0], anomaly) == (5, 0, [0.0, 0.0])
+    assert (normal_area, normal) == (3 * 6 + 4 * 6 + 1 * 1, 3 + 4 + 1)
+    assert frame_quality(masks[:0], anomaly) == (5, 0, [0.0, 0.0], 0.0, 0.0)
+    one_instance = np.where(anomaly == 1, 7, 0)  # A and B are parts of one object
+    assert frame_quality(masks, anomaly, one_instance)[2] == pytest.approx([3 / 8])

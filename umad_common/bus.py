@@ -58,9 +58,36 @@ def open_hub(endpoint: str = DEFAULT_HUB, tls: TlsConfig | None = None) -> zenoh
     return zenoh.open(zenoh_config("router", listen=[endpoint], tls=tls))
 
 
-def open_client(endpoint: str = DEFAULT_HUB, tls: TlsConfig | None = None) -> zenoh.Session:
-    """A client session connected to the hub at `endpoint`."""
-    return zenoh.open(zenoh_config("client", connect=[endpoint], tls=tls))
+def open_client(
+    endpoint: str = DEFAULT_HUB, tls: TlsConfig | None = None, cancel: threading.Event | None = None
+) -> zenoh.Session | None:
+    """A client session connected to the hub at `endpoint`, waiting for the hub as long as it takes.
+
+    With `cancel`, the wait happens off the main thread so a signal can end it: returns None then.
+    """
+    conf = zenoh_config("client", connect=[endpoint], tls=tls)
+    if cancel is None:
+        return zenoh.open(conf)
+    result: list[zenoh.Session] = []
+    opener = threading.Thread(target=lambda: result.append(zenoh.open(conf)), daemon=True)
+    opener.start()
+    while opener.is_alive() and not cancel.is_set():
+        opener.join(0.1)
+    if result and cancel.is_set():
+        close_session(result[0])
+    return None if cancel.is_set() else result[0]
+
+
+def close_session(session: zenoh.Session, timeout_s: float = 5.0) -> bool:
+    """Close a session, giving up after `timeout_s`: with the hub gone, Zenoh's close can wait for a
+    router that is not coming back, and a stopping operator must still exit."""
+    done = threading.Thread(target=session.close, daemon=True)
+    done.start()
+    done.join(timeout_s)
+    if done.is_alive():
+        log.warning("session did not close within %.0fs (hub unreachable?); exiting anyway", timeout_s)
+        return False
+    return True
 
 
 class Keys:

@@ -25,7 +25,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from umad_common.bus import DEFAULT_HUB
+from umad_common.bus import DEFAULT_HUB, TlsConfig
 from umad_common.operator import Operator, Source, UnknownOperatorError, load_operator_class
 
 
@@ -49,7 +49,14 @@ class OperatorSpec(BaseModel):
     id: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_\-]*$", description="unique name, used in bus keys")
     kind: str | None = Field(None, description="built-in operator kind")
     uses: str | None = Field(None, description="import path `package.module:Class` of a custom operator")
-    inputs: dict[str, str] = Field(default_factory=dict, description="port -> `operator/output` (wildcards allowed)")
+    inputs: dict[str, str | list[str]] = Field(
+        default_factory=dict, description="port -> `operator/output` (wildcards allowed; a list for `many` ports)"
+    )
+
+    def sources_of(self, port: str) -> list[str]:
+        """The wiring patterns of one input port, as a list."""
+        value = self.inputs[port]
+        return [value] if isinstance(value, str) else list(value)
     params: dict[str, Any] = Field(default_factory=dict)
     replicas: int = Field(1, description="processes sharing this operator's frames")
     python: str | None = Field(None, description="interpreter of another environment to run this operator in")
@@ -81,6 +88,14 @@ class Graph:
         here = self.path.parent if self.path else Path.cwd()
         return here / self.spec.base_dir if self.spec.base_dir else here
 
+    def tls_config(self) -> TlsConfig | None:
+        """The graph's TLS settings with certificate paths resolved against `base_dir`."""
+        tls = self.spec.tls
+        if tls is None:
+            return None
+        resolve = lambda p: str(self.base_dir / p) if p else None  # noqa: E731
+        return TlsConfig(resolve(tls.root_ca), resolve(tls.cert), resolve(tls.key))
+
     def op(self, op_id: str) -> OperatorSpec:
         for spec in self.spec.operators:
             if spec.id == op_id:
@@ -102,7 +117,7 @@ class Graph:
         return [
             spec.id
             for spec in self.spec.operators
-            if any(op == op_id for src in spec.inputs.values() for op, _ in self.producers(src))
+            if any(op == op_id for port in spec.inputs for src in spec.sources_of(port) for op, _ in self.producers(src))
         ]
 
     def sources(self) -> list[str]:
@@ -203,17 +218,23 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
             problems.append(f"operator {op.id!r}: unknown input port {name!r}; {cls.kind or cls.__name__} has {sorted(ports)}")
         for name in sorted(set(ports) - set(op.inputs)):
             problems.append(f"operator {op.id!r}: input port {name!r} is not wired")
-        for name, source in op.inputs.items():
+        for name in op.inputs:
             if name not in ports:
                 continue
-            if "/" not in source:
-                problems.append(f"operator {op.id!r}: input {name!r} = {source!r}; expected `operator/output`")
-                continue
-            matches = [m for m in graph.producers(source) if m[0] in classes]
-            if not matches:
-                problems.append(f"operator {op.id!r}: input {name!r} = {source!r} names an output no operator declares")
-            elif len(matches) > 1 and not ports[name].many:
-                problems.append(f"operator {op.id!r}: input {name!r} = {source!r} matches {len(matches)} outputs but the port takes one")
+            sources = op.sources_of(name)
+            if len(sources) > 1 and not ports[name].many:
+                problems.append(f"operator {op.id!r}: input {name!r} takes one source, got a list {sources}")
+            for source in sources:
+                if "/" not in source:
+                    problems.append(f"operator {op.id!r}: input {name!r} = {source!r}; expected `operator/output`")
+                    continue
+                matches = [m for m in graph.producers(source) if m[0] in classes]
+                if not matches:
+                    problems.append(f"operator {op.id!r}: input {name!r} = {source!r} names an output no operator declares")
+                elif len(matches) > 1 and not ports[name].many:
+                    problems.append(
+                        f"operator {op.id!r}: input {name!r} = {source!r} matches {len(matches)} outputs but the port takes one"
+                    )
     if not problems:
         cycle = _find_cycle(graph)
         if cycle:

@@ -24,7 +24,7 @@ from pathlib import Path
 import zenoh
 
 from replay.log import McapRecorder
-from umad_common.bus import Keys, TlsConfig, cleanup_stale_shm, open_client
+from umad_common.bus import Keys, cleanup_stale_shm, open_client
 from umad_common.graph import Graph, GraphError, OperatorSpec, load_graph
 from umad_common.runtime import EXIT_CONFIG
 
@@ -96,11 +96,11 @@ class Launcher:
 
     def _hub_command(self) -> list[str]:
         cmd = [sys.executable, "-m", "umad_common.hub", "--listen", self.hub]
-        tls = self.graph.spec.tls
+        tls = self.graph.tls_config()
         if tls is not None:
             for flag, value in (("--root-ca", tls.root_ca), ("--cert", tls.cert), ("--key", tls.key)):
                 if value:
-                    cmd += [flag, str(self.graph.base_dir / value)]
+                    cmd += [flag, value]
         return cmd
 
     def _command(self, graph: Graph, graph_file: Path, spec: OperatorSpec, index: int) -> list[str]:
@@ -204,7 +204,7 @@ class Launcher:
             self._stop.set()
 
         previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-        tls = TlsConfig(**self.graph.spec.tls.model_dump()) if self.graph.spec.tls else None
+        tls = self.graph.tls_config()
         if self.start_hub:
             self.hub_replica = Replica("hub", 0, self._hub_command(), False)
             self._spawn(self.hub_replica)

@@ -21,6 +21,7 @@ import argparse
 import fnmatch
 import json
 import logging
+import os
 import queue
 import sys
 import threading
@@ -35,7 +36,7 @@ import zenoh
 from pydantic import ValidationError
 
 from replay.log import LogError
-from umad_common.bus import Keys, ShutdownSignal, TlsConfig, open_client
+from umad_common.bus import Keys, ShutdownSignal, close_session, open_client
 from umad_common.graph import Graph, GraphError, load_graph, merge_params, parse_assignment
 from umad_common.messages import Message, MessageError, decode, encode
 from umad_common.operator import Context, Frame, Operator, Output, Source
@@ -269,11 +270,13 @@ class OperatorRuntime:
     # -- wiring -----------------------------------------------------------------------------------
 
     def _subscribe_inputs(self) -> None:
-        for port, source in self.spec.inputs.items():
-            key = self.keys.pattern(source)
-            self._subscribers.append(
-                self.session.declare_subscriber(key, lambda s, port=port: self.data_q.put((port, s)))
-            )
+        for port in self.spec.inputs:
+            for source in self.spec.sources_of(port):
+                self._subscribers.append(
+                    self.session.declare_subscriber(
+                        self.keys.pattern(source), lambda s, port=port: self.data_q.put((port, s))
+                    )
+                )
 
     def _subscribe_service(self) -> None:
         self._subscribers.append(
@@ -299,12 +302,20 @@ class OperatorRuntime:
             return True
         return replicas[seq % len(replicas)] == self.replica_id
 
+    def _produces(self, op: str, source: str) -> bool:
+        """Whether operator `op` publishes on wiring pattern `source`; an operator this graph file
+        does not know (started from another file) is matched by its id alone."""
+        if op in self.graph.classes:
+            return any(p == op for p, _ in self.graph.producers(source))
+        return fnmatch.fnmatchcase(op, source.partition("/")[0])
+
     def _expected(self) -> dict[str, set[str]]:
         expected = {}
         for port in self.cls.inputs:
             if port.many:
-                op_pat = self.spec.inputs[port.name].partition("/")[0]
-                expected[port.name] = {op for op in self.members.ops() if fnmatch.fnmatchcase(op, op_pat)}
+                expected[port.name] = {
+                    op for op in self.members.ops() if any(self._produces(op, src) for src in self.spec.sources_of(port.name))
+                }
         return expected
 
     # -- service messages ---------------------------------------------------------------------------
@@ -648,8 +659,13 @@ def run_operator(
 ) -> int:
     """Connect to the hub and run one replica until the stream ends (sources) or a signal arrives."""
     shutdown = ShutdownSignal()
-    tls = TlsConfig(**graph.spec.tls.model_dump()) if graph.spec.tls else None
-    session = open_client(connect or graph.spec.hub, tls)
+    tls = graph.tls_config()
+    session = open_client(connect or graph.spec.hub, tls, cancel=shutdown.event)
+    if session is None:
+        log.info("stopped while waiting for the hub at %s", connect or graph.spec.hub)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)  # the thread still waiting inside Zenoh would hold up a normal exit
     try:
         try:
             runtime = OperatorRuntime(graph, op_id, replica, session, shutdown.event, max_frames, replay_log, allow_truncated)
@@ -664,7 +680,11 @@ def run_operator(
         finally:
             runtime.operator.close()
     finally:
-        session.close()
+        closed = close_session(session)
+    if not closed:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)  # Zenoh's runtime threads would keep a clean interpreter exit waiting
     return 0
 
 

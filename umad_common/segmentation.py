@@ -132,7 +132,7 @@ class FeatureNetFeatures:
         return np.concatenate([self.weight * flat.reshape(h, w, -1), position], axis=-1).astype(np.float32)
 
 
-def kmeans_masks(features: np.ndarray, clusters: int, min_area: int, seed: int = 0) -> np.ndarray:
+def kmeans_masks(features: np.ndarray, clusters: int, min_area: int, fit_stride: int = 1, seed: int = 0) -> np.ndarray:
     """Feature clustering + connected components (the U2Seg idea without its detector): k-means on
     per-pixel features, then each 4-connected region of one cluster becomes a mask.
 
@@ -140,13 +140,16 @@ def kmeans_masks(features: np.ndarray, clusters: int, min_area: int, seed: int =
         features: (h, w, C) per-pixel features.
         clusters: k of k-means.
         min_area: smaller regions get no mask (their pixels stay uncovered).
+        fit_stride: fit the centroids on every n-th pixel in each direction, then assign every pixel
+            to its nearest centroid (n^2 times less fitting work).
         seed: k-means initialisation seed (fixed: the same frame gives the same masks).
     """
     h, w, channels = features.shape
-    flat = features.reshape(-1, channels)
-    clusters = min(clusters, len(flat))
+    sample = features[::fit_stride, ::fit_stride].reshape(-1, channels)
     with threadpool_limits(1):  # ~25k points: thread start-up costs more than it saves
-        assignment = KMeans(n_clusters=clusters, n_init=1, max_iter=50, random_state=seed).fit_predict(flat)
+        kmeans = KMeans(n_clusters=min(clusters, len(sample)), n_init=1, max_iter=50, random_state=seed)
+        kmeans.fit(sample)
+        assignment = kmeans.predict(features.reshape(-1, channels))
     regions = connected_regions(assignment.reshape(h, w))
     return labels_to_masks(regions, min_area=min_area)
 

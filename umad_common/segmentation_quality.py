@@ -6,8 +6,12 @@ Per method, over every frame of the given drives, at the world model's size:
 - `coverage`: the fraction of anomaly pixels covered by a mask that is at least half anomaly
   (ignore-labelled pixels excluded from a mask's area). A mean-refined mask that is mostly anomaly
   carries the anomaly's score; pixels of a mask that is mostly road are averaged away.
-- `best_iou`: the mean over anomaly objects (4-connected components of the anomaly label) of the
-  best IoU any single mask reaches with the object.
+- `best_iou`: the mean over anomaly objects (the anomaly pixels of one instance id, or 4-connected
+  anomaly regions without instance labels) of the best IoU any single mask reaches with the object.
+- `normal_segment_px`: the area of the mask a normal pixel lies in, averaged over normal pixels
+  (masks weighted by their normal pixels): how much averaging mean refinement gives the speckle of
+  normal structure. Finer masks raise `coverage` trivially (one-pixel masks reach 100 %) but leave
+  the speckle as it was; a good segmenter has both figures high.
 - `masks_per_frame` and `ms_per_frame` (the segmenter operator's `process`, one thread).
 """
 
@@ -51,12 +55,14 @@ class SegmenterQuality:
     anomaly_pixels: int
     coverage: float
     best_iou: float
+    normal_segment_px: float
     masks_per_frame: float
     ms_per_frame: float
 
     def row(self) -> str:
         return (
-            f"coverage {self.coverage:6.1%}  best IoU {self.best_iou:5.3f}  masks/frame {self.masks_per_frame:6.1f}  "
+            f"coverage {self.coverage:6.1%}  best IoU {self.best_iou:5.3f}  normal seg px {self.normal_segment_px:7.0f}  "
+            f"masks/frame {self.masks_per_frame:6.1f}  "
             f"{self.ms_per_frame:7.1f} ms/frame  {self.params}"
         )
 
@@ -96,29 +102,37 @@ def operator_frame(sample: LabelledFrame) -> Frame:
     )
 
 
-def frame_quality(masks: np.ndarray, anomaly: np.ndarray) -> tuple[int, int, list[float]]:
-    """(anomaly pixels, those covered by a >= 50 % anomaly mask, best IoU per anomaly object) of one
-    frame; `anomaly` already at the masks' size."""
+def frame_quality(
+    masks: np.ndarray, anomaly: np.ndarray, instance: np.ndarray | None = None
+) -> tuple[int, int, list[float], float, float]:
+    """(anomaly pixels, those covered by a >= 50 % anomaly mask, best IoU per anomaly object,
+    sum over masks of normal pixels x area, sum of normal pixels in masks) of one frame. Arrays already at the masks' size; an object is the anomaly pixels of one instance id when
+    `instance` is given (a thin-legged animal stays one object), else a 4-connected anomaly region."""
     is_anomaly = anomaly == 1
-    valid = anomaly != IGNORE
+    valid = (anomaly != IGNORE).reshape(-1)
     total = int(is_anomaly.sum())
+    if instance is not None:
+        objects = np.unique(instance[is_anomaly], return_inverse=True)[1]
+        object_ids = np.full(anomaly.shape, -1, dtype=np.int64)
+        object_ids[is_anomaly] = objects.reshape(-1)
+    else:
+        object_ids = connected_regions(np.where(is_anomaly, 1, -1))
+    object_count = int(object_ids.max()) + 1
     if masks.shape[0] == 0:
-        objects = connected_regions(np.where(is_anomaly, 1, -1)).max() + 1
-        return total, 0, [0.0] * int(objects)
+        return total, 0, [0.0] * object_count, 0.0, 0.0
     flat = masks.reshape(masks.shape[0], -1)
     inside = (flat & is_anomaly.reshape(-1)).sum(axis=1)
-    area = (flat & valid.reshape(-1)).sum(axis=1)
-    pure = inside * 2 >= np.maximum(area, 1)
-    pure &= inside > 0
+    area = (flat & valid).sum(axis=1)
+    normal = area - inside
+    pure = (inside > 0) & (inside * 2 >= area)
     covered = int((masks[pure].any(axis=0) & is_anomaly).sum())
-    objects = connected_regions(np.where(is_anomaly, 1, -1))
     best = []
-    for k in range(objects.max() + 1):
-        obj = (objects == k).reshape(-1)
+    for k in range(object_count):
+        obj = (object_ids == k).reshape(-1)
         intersection = (flat & obj).sum(axis=1)
-        union = (flat & valid.reshape(-1)).sum(axis=1) + obj.sum() - intersection
+        union = area + obj.sum() - intersection
         best.append(float((intersection / np.maximum(union, 1)).max()))
-    return total, covered, best
+    return total, covered, best, float((normal * area).sum()), float(normal.sum())
 
 
 def measure_segmenter(params: dict, frames: Iterable[LabelledFrame]) -> SegmenterQuality:
@@ -127,7 +141,7 @@ def measure_segmenter(params: dict, frames: Iterable[LabelledFrame]) -> Segmente
 
     segmenter = Segmenter(params)
     count = total = covered = masks_total = 0
-    seconds = 0.0
+    seconds = normal_area = normal_pixels = 0.0
     best_ious: list[float] = []
     for sample in frames:
         frame = operator_frame(sample)
@@ -135,7 +149,12 @@ def measure_segmenter(params: dict, frames: Iterable[LabelledFrame]) -> Segmente
         masks = segmenter.process(frame)["masks"].arrays["masks"]
         seconds += time.perf_counter() - start
         anomaly = resize_nearest(sample.anomaly, masks.shape[1:])
-        frame_total, frame_covered, frame_best = frame_quality(masks, anomaly)
+        instance = None if sample.instance is None else resize_nearest(sample.instance, masks.shape[1:])
+        frame_total, frame_covered, frame_best, frame_normal_area, frame_normal = frame_quality(
+            masks, anomaly, instance
+        )
+        normal_area += frame_normal_area
+        normal_pixels += frame_normal
         count += 1
         total += frame_total
         covered += frame_covered
@@ -149,6 +168,7 @@ def measure_segmenter(params: dict, frames: Iterable[LabelledFrame]) -> Segmente
         anomaly_pixels=total,
         coverage=covered / max(total, 1),
         best_iou=float(np.mean(best_ious)) if best_ious else 0.0,
+        normal_segment_px=normal_area / max(normal_pixels, 1.0),
         masks_per_frame=masks_total / count,
         ms_per_frame=1000.0 * seconds / count,
     )

@@ -18,9 +18,9 @@ METHODS = ("gt", "felzenszwalb", "slic", "kmeans")
 
 TUNING_GRID: dict[str, dict[str, list]] = {
     "gt": {"gt_stuff": [True, False]},
-    "felzenszwalb": {"felzenszwalb_scale": [50.0, 100.0, 200.0, 400.0], "felzenszwalb_min_size": [10, 20, 50]},
-    "slic": {"slic_n_segments": [100, 300, 600], "slic_compactness": [5.0, 10.0, 20.0]},
-    "kmeans": {"kmeans_clusters": [8, 16, 24], "kmeans_position_weight": [0.25, 0.5, 1.0]},
+    "felzenszwalb": {"felzenszwalb_scale": [50.0, 100.0, 200.0], "felzenszwalb_sigma": [0.3, 0.8]},
+    "slic": {"slic_n_segments": [100, 200, 300], "slic_compactness": [10.0, 20.0]},
+    "kmeans": {"kmeans_clusters": [16, 32, 48], "kmeans_position_weight": [0.25, 0.5]},
 }
 
 

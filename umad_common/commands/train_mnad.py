@@ -16,10 +16,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", type=Path, required=True, help="weights file (.safetensors); its .json config is written beside it"
     )
-    parser.add_argument("--epochs", type=int, default=6, help="passes over the loaded frames (default 6)")
+    parser.add_argument("--epochs", type=int, default=3, help="passes over the loaded frames (default 3)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument(
-        "--frames", type=int, default=1500, help="at most this many frames, spread over all scenarios (default 1500)"
+        "--frames", type=int, default=1200, help="at most this many frames, spread over all scenarios (default 1200)"
     )
     parser.add_argument("--batch-size", type=int, default=8, help="frames per step (default 8)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")

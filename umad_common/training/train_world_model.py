@@ -70,8 +70,22 @@ def normal_root(data: Path) -> Path:
     return data / "normal" if (data / "normal").is_dir() else data
 
 
+LABEL_MODALITIES = ("depth", "semantic", "instance")
+
+
+def open_inputs_only(path: Path, every: int = 1):
+    """An AnoVoxScenario that reads only the model inputs: the label folders (depth, semantic,
+    instance) are dropped from its modality table, so no label file is ever opened."""
+    from umad_common.datasets.anovox import AnoVoxScenario
+
+    scenario = AnoVoxScenario(path, every=every)
+    for key in LABEL_MODALITIES:
+        scenario.folders.pop(key, None)
+    return scenario
+
+
 def load_drive(scenario, config: WorldModelConfig) -> DriveArrays:
-    """Read a scenario's model inputs (camera, lidar, ego, route; no labels) at model size."""
+    """Read a scenario's model inputs (camera, lidar, ego, route) at model size."""
     rgb, lidar, route, speed, action = [], [], [], [], []
     for i in range(len(scenario)):
         frame = scenario[i]
@@ -87,7 +101,7 @@ def load_drive(scenario, config: WorldModelConfig) -> DriveArrays:
 
 def load_normal_drives(data: Path, config: WorldModelConfig, holdout: int) -> tuple[list[DriveArrays], list[str]]:
     """All normal drives under DATA except the last `holdout`; returns (drives, held-out names)."""
-    from umad_common.datasets.anovox import AnoVoxScenario, find_scenarios
+    from umad_common.datasets.anovox import find_scenarios
 
     paths = find_scenarios(normal_root(data))
     if not paths:
@@ -96,7 +110,7 @@ def load_normal_drives(data: Path, config: WorldModelConfig, holdout: int) -> tu
     train_paths, held = paths[: len(paths) - holdout], paths[len(paths) - holdout :]
     drives = []
     for path in tqdm(train_paths, desc="loading drives", unit="drive"):
-        drives.append(load_drive(AnoVoxScenario(path, every=config.frame_step), config))
+        drives.append(load_drive(open_inputs_only(path, config.frame_step), config))
     return drives, [p.name for p in held]
 
 
