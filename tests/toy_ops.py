@@ -76,3 +76,61 @@ class JoinSink(Operator):
         if self.params.log:
             with Path(self.params.log).open("a") as f:
                 f.write(json.dumps(obj) + "\n")
+
+
+def _counter_frame(run_index: int, seq: int, size: int) -> SourceFrame:
+    value = np.full(size, float(seq + 1000 * run_index), dtype=np.float32)
+    return SourceFrame(f"run{run_index}", seq, seq * 100_000_000, {"value": Output({"x": value})})
+
+
+class RewindableCounterSource(CounterSource):
+    """A counter source with random access, so a restarted ordered operator can re-observe a run."""
+
+    kind = "toy_rewindable_counter"
+
+    def frames(self):
+        for r in range(self.params.runs):
+            for seq in range(self.params.frames):
+                yield _counter_frame(r, seq, self.params.size)
+
+    def frame_at(self, run, seq):
+        return _counter_frame(int(run[3:]), seq, self.params.size)
+
+
+class RunningSum(Operator):
+    """Stateful: the sum of all values of the run so far (needs every earlier frame, in order)."""
+
+    kind = "toy_running_sum"
+    inputs = (Input("x"),)
+    outputs = ("y",)
+    ordered = True
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        delay_s: float = 0.0
+
+    def __init__(self, params=None, context=None):
+        super().__init__(params, context)
+        self.run, self.total = None, 0.0
+
+    def process(self, frame):
+        if frame.run != self.run:
+            self.run, self.total = frame.run, 0.0
+        time.sleep(self.params.delay_s)
+        self.total += float(frame.inputs["x"].arrays["x"][0])
+        return {"y": Output({"x": np.array([self.total], np.float32)})}
+
+
+class Logger(Operator):
+    kind = "toy_logger"
+    inputs = (Input("x"),)
+    outputs = ()
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        log: str = ""
+
+    def process(self, frame):
+        with Path(self.params.log).open("a") as f:
+            f.write(json.dumps({"run": frame.run, "seq": frame.seq, "value": float(frame.inputs["x"].arrays["x"][0])}) + "\n")
+        return {}

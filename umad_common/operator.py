@@ -151,6 +151,11 @@ class Source(Operator):
         """Yield frames run after run, seq 0, 1, 2, ... within a run."""
         raise NotImplementedError
 
+    def frame_at(self, run: str, seq: int) -> SourceFrame:
+        """One earlier frame again, identical to what `frames` yielded: lets a restarted stateful
+        operator re-observe a run. Sources without random access leave this unimplemented."""
+        raise NotImplementedError
+
 
 BUILTIN_KINDS = {
     "replayer": "operators.replayer:Replayer",

@@ -49,6 +49,7 @@ REPUBLISH_INTERVAL_S = 1.0
 STATS_INTERVAL_S = 1.0
 LIVE_WAIT_S = 60.0
 LOST_GRACE_S = 15.0
+REWIND_RETRY_S = 10.0
 EXIT_CONFIG = 3  # an operator that exits with this failed on its configuration: restarting cannot help
 
 
@@ -253,6 +254,8 @@ class OperatorRuntime:
         self.data_q: queue.Queue = queue.Queue(maxsize=64)
         self.ctl_q: queue.Queue = queue.Queue()
         self.members = Membership()
+        self.resend_requests: list[dict] = []  # sources: frames a restarted ordered operator needs again
+        self._rewinds: dict[str, float] = {}  # ordered operators: run -> when frames were last re-requested
         self.publishers = {
             out: session.declare_publisher(
                 self.keys.data(op_id, out), congestion_control=zenoh.CongestionControl.BLOCK
@@ -352,6 +355,9 @@ class OperatorRuntime:
                 self.log.info("stop requested on the control key")
                 self.shutdown.set()
                 return
+            if "resend" in command:
+                self.resend_requests.append(command["resend"])
+                return
             updates = command["set"]
             params = self.operator.params.model_dump()
             merge_params(params, updates)
@@ -363,6 +369,19 @@ class OperatorRuntime:
         self.operator.update_params(new)
         self.stats.param_changes += 1
         self.log.info("parameters changed: %s", updates)
+
+    def _request_rewind(self, run: str, seq: int) -> None:
+        """An ordered operator that (re)started mid-run rebuilds its state by re-observing the run
+        from its first frame: ask the sources to send frames [0, seq) again. Every other consumer
+        sees those as duplicates and answers from its cache."""
+        now = time.monotonic()
+        if now - self._rewinds.get(run, -1e9) < REWIND_RETRY_S:
+            return
+        self._rewinds[run] = now
+        self.log.warning("frame %s#%d arrived without the frames before it: asking the sources to resend them", run, seq)
+        for source in self.graph.sources():
+            request = {"resend": {"run": run, "from": 0, "to": seq, "for": self.op_id}}
+            self.session.put(self.keys.control(source), json.dumps(request))
 
     def _publish_stats(self, force: bool = False) -> None:
         now = time.monotonic()
@@ -513,6 +532,8 @@ class OperatorRuntime:
                 if frame.seq < next_seq[frame.run]:
                     continue
                 in_order[frame.run][frame.seq] = frame
+                if next_seq[frame.run] == 0 and 0 not in in_order[frame.run]:
+                    self._request_rewind(frame.run, frame.seq)
                 while next_seq[frame.run] in in_order[frame.run]:
                     finish(in_order[frame.run].pop(next_seq[frame.run]))
                     next_seq[frame.run] += 1
@@ -599,10 +620,12 @@ class SourceDriver:
             self.inflight[key] = (payloads, now, now)
 
     def _service(self, timeout: float) -> None:
-        """Take acks, retransmit what timed out, publish stats."""
+        """Take acks, retransmit what timed out, answer resend requests, publish stats."""
         rt = self.rt
         rt._handle_service()
         rt._publish_stats()
+        while rt.resend_requests:
+            self._resend(rt.resend_requests.pop(0))
         try:
             raw = self.ack_q.get(timeout=timeout)
         except queue.Empty:
@@ -635,6 +658,23 @@ class SourceDriver:
                 for port, payload in payloads:
                     rt.publishers[port].put(payload)
                 self.inflight[key] = (payloads, first, now)
+
+    def _resend(self, request: dict) -> None:
+        """Publish frames [from, to) of a run again, byte for byte, for a restarted ordered operator."""
+        rt = self.rt
+        try:
+            run, first, last = str(request["run"]), int(request["from"]), int(request["to"])
+            for seq in range(first, last):
+                sf = self.source.frame_at(run, seq)
+                rt._publish(rt._encode_outputs(sf.run, sf.seq, sf.stamp_ns, sf.outputs, {}))
+        except NotImplementedError:
+            rt.log.error("%s cannot resend frames (no frame_at); %s must start its run over", rt.op_id, request.get("for"))
+            return
+        except (KeyError, ValueError, TypeError, IndexError) as exc:
+            rt.stats.errors += 1
+            rt.log.error("bad resend request %r: %s", request, exc)
+            return
+        rt.log.info("resent %s#%d..%d for %s", run, first, last - 1, request.get("for"))
 
     def _end_run(self, run: str, frames: int, stamp_ns: int) -> None:
         """Drain the run's frames, then send its end-of-run marker until every sink acked it."""

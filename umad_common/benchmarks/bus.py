@@ -4,14 +4,12 @@ the price of the bus itself (transport, joining, acks), not of serialisation."""
 
 from __future__ import annotations
 
-import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field
 
+from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.messages import Message, decode, encode
 from umad_common.operator import Input, Operator, Output, Source, SourceFrame
 
@@ -52,7 +50,7 @@ class BlobSink(Operator):
     outputs = ("done",)
 
     def process(self, frame):
-        return {"done": Output(meta={"bytes": int(frame.inputs["blob"].arrays["data"].nbytes)})}
+        return {"done": Output(meta={"bytes": sum(int(a.nbytes) for a in frame.inputs["blob"].arrays.values())})}
 
 
 def in_process(frames: int, size_bytes: int) -> dict:
@@ -74,41 +72,33 @@ def in_process(frames: int, size_bytes: int) -> dict:
     return {"fps": frames / elapsed, "p50_ms": float(np.percentile(lat, 50)), "p99_ms": float(np.percentile(lat, 99))}
 
 
-def over_bus(frames: int, size_bytes: int, hub: str) -> dict:
+def over_bus(frames: int, size_bytes: int, hub: str, window: int) -> dict:
     """source -> relay -> sink as three processes on a hub; latency is send-to-ack at the source."""
-    from umad_common.graph import load_graph
-    from umad_common.launcher import Launcher
-
-    graph_data = {
-        "name": "bench",
-        "hub": hub,
-        "operators": [
-            {"id": "source", "uses": f"{__name__}:BlobSource", "params": {"frames": frames, "size_bytes": size_bytes}},
-            {"id": "relay", "uses": f"{__name__}:Relay", "inputs": {"blob": "source/blob"}},
-            {"id": "sink", "uses": f"{__name__}:BlobSink", "inputs": {"blob": "relay/blob"}},
-        ],
-    }
-    path = Path(tempfile.mkdtemp(prefix="umad-bench-")) / "graph.yaml"
-    path.write_text(yaml.safe_dump(graph_data))
-    launcher = Launcher(load_graph(path), path, quiet=True)
-    start = time.perf_counter()
-    code = launcher.run()
-    if code != 0:
-        raise RuntimeError(f"bus benchmark graph failed with exit code {code}")
-    elapsed = time.perf_counter() - start
-    src = launcher.stats["source.r0"]
-    busy = src.get("busy_s") or elapsed
-    return {"fps": frames / busy, "p50_ms": src["p50_ms"], "p99_ms": src["p99_ms"], "wall_s_with_startup": elapsed}
+    return run_bench_graph(
+        {
+            "name": "bench",
+            "hub": hub,
+            "operators": [
+                {"id": "source", "uses": f"{__name__}:BlobSource",
+                 "params": {"frames": frames, "size_bytes": size_bytes, "window": window}},
+                {"id": "relay", "uses": f"{__name__}:Relay", "inputs": {"blob": "source/blob"}},
+                {"id": "sink", "uses": f"{__name__}:BlobSink", "inputs": {"blob": "relay/blob"}},
+            ],
+        }
+    )
 
 
 def bench_bus(frames: int = 300, size_bytes: int = 1 << 20, hub: str = "tcp/127.0.0.1:7449") -> dict:
     local = in_process(frames, size_bytes)
-    bus = over_bus(frames, size_bytes, hub)
+    bus = over_bus(frames, size_bytes, hub, window=8)
+    bus1 = over_bus(frames, size_bytes, hub, window=1)
+    keep = ("fps", "p50_ms", "p99_ms")
     return {
         "frames": frames,
         "frame_bytes": size_bytes,
         "in_process": local,
-        "bus": bus,
+        "bus_window_8": {k: bus[k] for k in keep},
+        "bus_window_1": {k: bus1[k] for k in keep},
         "fps_ratio_bus_over_in_process": bus["fps"] / local["fps"],
-        "p50_ratio_bus_over_in_process": bus["p50_ms"] / local["p50_ms"],
+        "p50_ratio_bus_window_1_over_in_process": bus1["p50_ms"] / local["p50_ms"],
     }

@@ -40,7 +40,7 @@ class WorldModelConfig:
     image_channels: tuple[int, ...] = (16, 32, 64, 64)  # conv widths, one stride-2 stage each; the
     #   latent grid is image size / 2**len(image_channels) (8 x 12 by default)
     lidar_rows: int = 64  # range image rows = lidar channels
-    lidar_width: int = 256  # range image columns (360 degrees of azimuth)
+    lidar_width: int = 128  # range image columns (360 degrees of azimuth)
     lidar_fov_up: float = 15.0  # degrees above the horizon covered by the top row
     lidar_fov_down: float = -25.0  # degrees of the bottom row
     lidar_scale: float = 50.0  # metres; the range image holds (x, y, z, range) / lidar_scale

@@ -39,11 +39,11 @@ log = logging.getLogger("umad.train.world_model")
 
 @dataclass
 class TrainConfig:
-    sequence_length: int = 12  # model steps per training window
+    sequence_length: int = 8  # model steps per training window
     batch_size: int = 4  # windows per optimizer step
     learning_rate: float = 1e-3  # Adam, cosine-decayed to 10 % over all steps
     grad_clip: float = 100.0
-    kl_weight: float = 3e-5  # per nat of KL(posterior || prior), against per-pixel mean squared error
+    kl_weight: float = 1e-5  # per nat of KL(posterior || prior), against per-pixel mean squared error
     kl_balance: float = 0.8  # share of the KL gradient that trains the prior (DreamerV2 balancing)
     free_nats: float = 1.0  # KL below this is not penalised
     lidar_weight: float = 0.5  # weight of the range reconstruction L1 loss

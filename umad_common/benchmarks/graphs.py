@@ -1,0 +1,30 @@
+"""Run a benchmark graph with the launcher and read the source's pacing stats back."""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import yaml
+
+
+def run_bench_graph(graph_data: dict, timeout_note: str = "") -> dict:
+    """Launch `graph_data` quietly; returns the source's frames/s and send-to-ack latency."""
+    from umad_common.graph import load_graph
+    from umad_common.launcher import Launcher
+
+    path = Path(tempfile.mkdtemp(prefix="umad-bench-")) / "graph.yaml"
+    path.write_text(yaml.safe_dump(graph_data, sort_keys=False))
+    graph = load_graph(path)
+    launcher = Launcher(graph, path, quiet=True)
+    start = time.perf_counter()
+    code = launcher.run()
+    wall = time.perf_counter() - start
+    if code != 0:
+        raise RuntimeError(f"benchmark graph {graph.name} failed with exit code {code} {timeout_note}")
+    source = launcher.stats[f"{graph.sources()[0]}.r0"]
+    frames = source["frames_out"]
+    busy = source.get("busy_s") or wall
+    return {"frames": frames, "fps": frames / busy, "p50_ms": source["p50_ms"], "p99_ms": source["p99_ms"],
+            "wall_s_with_startup": wall, "stats": launcher.stats}

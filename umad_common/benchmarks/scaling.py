@@ -1,0 +1,64 @@
+"""`umad bench scaling`: the perceptual difference worker with 1 and with 2 replicas, side by side.
+
+A source publishes world-model-shaped frames (128x192 target, reconstruction, 3 predictions) to a
+`difference` operator with metric `perceptual` (1 torch thread per replica), whose maps go to a
+sink. The ratio is frames/s with 2 replicas over frames/s with 1, on the same machine in one run.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from umad_common.benchmarks.graphs import run_bench_graph
+from umad_common.operator import Output, Source, SourceFrame
+
+
+class WorldModelFrames(Source):
+    """Random but fixed frames shaped like the world model's `frame` output."""
+
+    kind = "bench_world_model_frames"
+    outputs = ("frame",)
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        frames: int = Field(40, description="frames to send")
+        height: int = Field(128, description="image height")
+        width: int = Field(192, description="image width")
+        window: int = Field(8, description="frames in flight")
+
+    def frames(self):
+        rng = np.random.default_rng(0)
+        h, w = self.params.height, self.params.width
+        target = rng.random((h, w, 3), dtype=np.float32)
+        recon = np.clip(target + rng.normal(0, 0.05, (h, w, 3)).astype(np.float32), 0, 1)
+        preds = np.stack([recon] * 3)
+        for seq in range(self.params.frames):
+            arrays = {"target": target, "recon": recon, "preds": preds, "pred_valid": np.ones(3, np.uint8)}
+            yield SourceFrame("bench", seq, seq, {"frame": Output(arrays)})
+
+
+def scaling_graph(replicas: int, frames: int, hub: str) -> dict:
+    return {
+        "name": f"scaling{replicas}",
+        "hub": hub,
+        "operators": [
+            {"id": "frames", "uses": f"{__name__}:WorldModelFrames", "params": {"frames": frames}},
+            {"id": "diff_perceptual", "kind": "difference", "inputs": {"frame": "frames/frame"}, "replicas": replicas,
+             "params": {"metric": "perceptual", "threads": 1}},
+            {"id": "sink", "uses": "umad_common.benchmarks.bus:BlobSink", "inputs": {"blob": "diff_perceptual/map"}},
+        ],
+    }
+
+
+def bench_scaling(frames: int = 40, hub: str = "tcp/127.0.0.1:7449") -> dict:
+    one = run_bench_graph(scaling_graph(1, frames, hub))
+    two = run_bench_graph(scaling_graph(2, frames, hub))
+    per_replica = {k: v["frames_in"] for k, v in two["stats"].items() if k.startswith("diff_perceptual")}
+    return {
+        "frames": frames,
+        "replicas_1": {k: one[k] for k in ("fps", "p50_ms", "p99_ms")},
+        "replicas_2": {k: two[k] for k in ("fps", "p50_ms", "p99_ms")},
+        "frames_per_replica_with_2": per_replica,
+        "fps_ratio_2_over_1": two["fps"] / one["fps"],
+    }
