@@ -1,8 +1,8 @@
 """Replayer: the graph's source. Publishes AnoVox scenarios (either layout) frame by frame.
 
 One run per scenario folder (run = folder name), seq 0, 1, 2, ... over the sampled frames, stamps at
-the recording's frame rate. Pacing (`lossless` with a window of unacked frames, or `realtime`) is
-done by the runtime from the parameters declared here.
+the recording's 10 Hz (frame index x 100 ms, so sampling keeps real time). Pacing (`lossless` with a
+window of unacked frames, or `realtime`) is done by the runtime from the parameters declared here.
 """
 
 from __future__ import annotations
@@ -13,10 +13,12 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from replay.log_source import recorded_frames
 from umad_common.datasets.anovox import AnoVoxFrame, AnoVoxScenario, DatasetError, find_scenarios
 from umad_common.operator import Context, Output, Source, SourceFrame
 
 ROUTE_SHAPE = (192, 192)
+RECORDING_PERIOD_NS = 100_000_000  # AnoVox and the synthetic world record at 10 Hz
 
 
 class Replayer(Source):
@@ -27,7 +29,8 @@ class Replayer(Source):
         model_config = ConfigDict(extra="forbid")
 
         source: str = Field(
-            "data/synth/anomalous", description="a Scenario_* folder, or a folder searched recursively for them"
+            "data/synthetic/anomalous",
+            description="a Scenario_* folder, a folder searched recursively for them, or an MCAP log of an earlier run",
         )
         every: int = Field(1, ge=1, description="publish every k-th frame of each scenario")
         scenarios: list[str] | None = Field(None, description="keep only scenarios with these folder names (None: all)")
@@ -35,14 +38,23 @@ class Replayer(Source):
             None, ge=1, description="at most this many frames per run after sampling (None: all)"
         )
         pacing: Literal["lossless", "realtime"] = Field(
-            "lossless", description="lossless: advance on acks; realtime: follow the stamps"
+            "lossless", description="lossless: advance on acks from the sinks; realtime: publish at rate_hz"
         )
         window: int = Field(8, ge=1, description="lossless pacing: frames in flight before waiting for acks")
-        rate_hz: float = Field(10.0, gt=0, description="frame rate of the recording; stamps are frame index / rate_hz")
+        rate_hz: float = Field(10.0, gt=0, description="realtime pacing: frames published per second")
+        ack_timeout_s: float = Field(
+            15.0, gt=0, description="lossless pacing: re-send a frame not acked within this time"
+        )
 
     def __init__(self, params: BaseModel | dict | None = None, context: Context | None = None):
         super().__init__(params, context)
         root = self.context.resolve(self.params.source)
+        self.log_path = root if root.suffix == ".mcap" else None
+        self.scenarios: dict[str, AnoVoxScenario] = {}
+        if self.log_path is not None:
+            if not root.is_file():
+                raise DatasetError(f"{root}: MCAP log not found")
+            return
         paths = find_scenarios(root)
         if self.params.scenarios is not None:
             wanted = set(self.params.scenarios)
@@ -52,16 +64,36 @@ class Replayer(Source):
             paths = [p for p in paths if p.name in wanted]
         if not paths:
             raise DatasetError(f"{root}: no AnoVox scenarios (Scenario_* folders with RGB-CAM... or RGB_IMG) found")
-        self.scenarios = [AnoVoxScenario(p, every=self.params.every) for p in paths]
+        names = [p.name for p in paths]
+        if len(set(names)) != len(names):
+            twice = sorted({n for n in names if names.count(n) > 1})
+            raise DatasetError(
+                f"{root}: scenario names {twice} occur more than once; runs are named by folder, so point at one copy"
+            )
+        self.scenarios = {p.name: AnoVoxScenario(p, every=self.params.every) for p in paths}
+
+    def run_length(self, run: str) -> int:
+        """Frames published for a run (after sampling and max_frames)."""
+        scenario = self.scenarios[run]
+        return len(scenario) if self.params.max_frames is None else min(len(scenario), self.params.max_frames)
 
     def frames(self) -> Iterator[SourceFrame]:
-        period_ns = 1e9 / self.params.rate_hz
-        for scenario in self.scenarios:
-            count = len(scenario) if self.params.max_frames is None else min(len(scenario), self.params.max_frames)
-            for seq in range(count):
-                frame = scenario[seq]
-                stamp_ns = int(round(seq * scenario.every * period_ns))
-                yield SourceFrame(scenario.name, seq, stamp_ns, frame_outputs(frame, scenario.name))
+        if self.log_path is not None:  # a recorded run: its payloads again, byte for byte
+            yield from recorded_frames(self.log_path, self.context.graph_name, self.context.op_id, self.outputs)
+            return
+        for run in self.scenarios:
+            for seq in range(self.run_length(run)):
+                yield self.frame_at(run, seq)
+
+    def frame_at(self, run: str, seq: int) -> SourceFrame:
+        """Frame `seq` of scenario `run`, read again from disk (identical to what `frames` yields)."""
+        if run not in self.scenarios:
+            raise KeyError(f"run {run!r} is not one of this replayer's scenarios {sorted(self.scenarios)}")
+        if not 0 <= seq < self.run_length(run):
+            raise IndexError(f"seq {seq} out of range for run {run!r} with {self.run_length(run)} frames")
+        scenario = self.scenarios[run]
+        stamp_ns = seq * scenario.every * RECORDING_PERIOD_NS  # AnoVox frames are 10 Hz apart
+        return SourceFrame(run, seq, stamp_ns, frame_outputs(scenario[seq], run))
 
 
 def frame_outputs(frame: AnoVoxFrame, scenario: str) -> dict[str, Output]:

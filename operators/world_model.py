@@ -27,8 +27,8 @@ from umad_common.models.world_model import (
     action_of,
     lidar_range_image,
     load_world_model,
-    resize_route,
     resize_rgb,
+    resize_route,
 )
 from umad_common.operator import Frame, Input, Operator, Output
 
@@ -40,7 +40,9 @@ class WorldModelParams(BaseModel):
         default="umad_common/assets/world_model.safetensors",
         description="world model weights (safetensors) with its JSON config beside it; relative to the graph folder",
     )
-    horizon: int = Field(default=3, ge=1, le=32, description="n: predictions x̂_{t|t-i} for i = 1..n model steps back")
+    horizon: int = Field(
+        default=3, ge=1, le=32, description="n: predictions x̂_{t|t-i} made i = 1..n model steps (i·stride frames) back"
+    )
     stride: int = Field(
         default=1,
         ge=1,
@@ -98,7 +100,9 @@ class WorldModelPredictor(Operator):
         rgb = resize_rgb(np.asarray(array_of(frame, "camera", "rgb"), np.uint8), c)
         ego = np.asarray(array_of(frame, "ego", "ego"), np.float32).reshape(-1)
         if ego.shape != (4,):
-            raise ValueError(f"world_model {frame.frame_id}: ego has shape {ego.shape}; expected (4,) [speed, throttle, brake, steer]")
+            raise ValueError(
+                f"world_model {frame.frame_id}: ego has shape {ego.shape}; expected (4,) [speed, throttle, brake, steer]"
+            )
         lidar = lidar_range_image(array_of(frame, "lidar", "points"), c)
         route = resize_route(array_of(frame, "route", "route"), c)
         target = rgb.astype(np.float32) / 255.0
@@ -130,7 +134,8 @@ class WorldModelPredictor(Operator):
                 h_pred = self.model.transition(origin, self.pending_action)
                 advanced.append(State(h_pred, self.model.prior(h_pred)[0]))
             batch = [posterior, *advanced]
-            images, _ = self.model.decode(State(torch.cat([s.h for s in batch]), torch.cat([s.z for s in batch])))
+            states = State(torch.cat([s.h for s in batch]), torch.cat([s.z for s in batch]))
+            images = self.model.decode(states, with_lidar=False)[0]
             images = images.permute(0, 2, 3, 1).numpy()
             recon = images[0]
             preds[: len(advanced)] = images[1:]
@@ -140,7 +145,7 @@ class WorldModelPredictor(Operator):
             self.pending_action = torch.from_numpy(action)[None]
             self.steps += 1
         else:
-            recon = self.model.decode(posterior)[0][0].permute(1, 2, 0).numpy()
+            recon = self.model.decode(posterior, with_lidar=False)[0][0].permute(1, 2, 0).numpy()
         meta = {
             "model": self.model_path.name,
             "model_step": bool(model_step),

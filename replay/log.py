@@ -9,6 +9,7 @@ JSON schemas) may sit beside them; replay ignores those.
 from __future__ import annotations
 
 import json
+import queue
 import threading
 import time
 from collections.abc import Iterator
@@ -41,7 +42,9 @@ def package_version() -> str:
 class McapRecorder:
     """Thread-safe writer: `write(key, payload)` from Zenoh callbacks, `close()` once at the end."""
 
-    def __init__(self, path: str | Path, graph_text: str = "", extra_metadata: dict[str, str] | None = None):
+    def __init__(
+        self, path: str | Path, graph_text: str = "", extra_metadata: dict[str, str] | None = None, viz: bool = True
+    ):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")
@@ -53,13 +56,20 @@ class McapRecorder:
         self._lock = threading.Lock()
         self.count = 0
         self.last_write = time.monotonic()
+        self._viz_queue: queue.Queue | None = None
+        if viz:  # pictures are encoded off the Zenoh callback thread
+            self._viz_queue = queue.Queue(maxsize=256)
+            self._viz_thread = threading.Thread(target=self._viz_worker, daemon=True)
+            self._viz_thread.start()
 
     def write(self, key: str, payload: bytes) -> None:
         try:
             msg = decode(payload)
             seq, stamp = msg.seq, msg.stamp_ns
         except MessageError:
-            seq, stamp = 0, 0
+            msg, seq, stamp = None, 0, 0
+        if msg is not None and self._viz_queue is not None and msg.arrays:
+            self._viz_queue.put((key, msg))
         with self._lock:
             channel = self._channels.get(key)
             if channel is None:
@@ -82,7 +92,25 @@ class McapRecorder:
                 channel = self._channels[topic] = self._writer.register_channel(topic, "json", schema_id)
             self._writer.add_message(channel, time.time_ns(), json.dumps(obj).encode(), stamp_ns, 0)
 
+    def _viz_worker(self) -> None:
+        from replay.foxglove import COMPRESSED_IMAGE_SCHEMA, compressed_image, views
+
+        while True:
+            item = self._viz_queue.get()
+            if item is None:
+                return
+            key, msg = item
+            _, _, rest = key.partition("/")  # drop "umad/"
+            op_output = rest.partition("/")[2]
+            for name, picture in views(op_output.rsplit("/", 1)[-1], msg).items():
+                topic = f"viz/{op_output}" + (f"/{name}" if name else "")
+                obj = compressed_image(picture, msg.stamp_ns, f"{msg.run}#{msg.seq}")
+                self.write_json(topic, "foxglove.CompressedImage", COMPRESSED_IMAGE_SCHEMA, obj, msg.stamp_ns)
+
     def close(self) -> None:
+        if self._viz_queue is not None:
+            self._viz_queue.put(None)
+            self._viz_thread.join()
         with self._lock:
             self._writer.finish()
             self._file.close()

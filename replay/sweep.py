@@ -1,27 +1,17 @@
 """The paper's ablation from one recorded log: every fusion weight row x every mask setting, no model run.
 
-A log (replay/log.py) holds each bus message's exact payload on the channel `umad/<graph>/<op>/<output>`.
-The sweep regroups the messages it needs by frame `(run, seq)`:
-
-- `<replayer>/truth`    -> the anomaly labels (0/1/255);
-- `<world_model>/frame` -> target and reconstruction (kept as uint8, for the overlay pictures);
-- `<op>/map` with meta `metric` -> one normalised difference map per metric;
-- `<segmenter>/masks`   -> (K, h, w) bool masks per segmenter operator (meta `method`);
-- `<op>/map` with meta `model: mnad` (or op id `mnad`) -> the MNAD baseline's L2 map.
-
-Each configuration fuses and refines exactly as the live operators do (`umad_common.refine.fuse`
+Frames come from the log through `replay.frames.frames_from_log` (truth, difference maps, masks per
+segmenter, the MNAD map, regrouped by `(run, seq)`). Each configuration fuses and refines exactly as the live operators do (`umad_common.refine.fuse`
 and `refine`, so a sweep row equals the live pipeline's numbers) and streams its pixels into its own
-`PixelMetrics`: memory is one 1 MiB histogram per configuration plus a few frames in flight. A frame
-is complete once its run has moved `lag` frames further (lossless delivery keeps frames at most a
-window apart); a message arriving later is counted as late and dropped.
+`PixelMetrics`: memory is one 1 MiB histogram per configuration plus a few frames in flight. With
+`components`, a second read of the log adds SegmentMeIfYouCan component metrics for the headline
+configurations at their best pixel-F1 thresholds.
 """
 
 from __future__ import annotations
 
-import bisect
 import heapq
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
@@ -29,15 +19,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from replay.log import LogError, read_log
-from umad_common.messages import MessageError, decode
+from replay.frames import FrameRecord, LogStats, frames_from_log
 from umad_common.metrics.components import ComponentMetrics
 from umad_common.metrics.pixel import PixelMetrics
-from umad_common.refine import fuse, refine, resize_nearest
+from umad_common.refine import MAX_CHUNK_ELEMENTS, fuse, paint_masks, refine, resize_nearest
 
 PAPER_METRICS = ("abs", "mse", "ssim", "perceptual", "temporal")
-METRIC_ALIASES = {"pd": "perceptual", "td": "temporal", "l1": "abs", "l2": "mse"}
-WANTED_OUTPUTS = ("truth", "frame", "map", "masks")
 REFINE_MODES = ("mean", "max", "single")
 
 
@@ -55,117 +42,56 @@ def paper_weight_rows() -> list[dict[str, Fraction]]:
     return [{m: Fraction(1, len(group)) for m in group} for group in groups]
 
 
-def canonical_metric(name: str) -> str:
-    return METRIC_ALIASES.get(name.lower(), name.lower())
+class MaskSet:
+    """`refine(fused, masks, mode, uncovered="keep")` for many fused maps over the same masks.
 
-
-@dataclass
-class FrameRecord:
-    """What the sweep needs of one frame; arrays are copies (the payloads are freed)."""
-
-    run: str
-    seq: int
-    truth: np.ndarray | None = None  # (H, W) uint8 0/1/255
-    target: np.ndarray | None = None  # (h, w, 3) uint8
-    recon: np.ndarray | None = None  # (h, w, 3) uint8
-    diffs: dict[str, np.ndarray] = field(default_factory=dict)  # canonical metric -> (h, w) float32
-    masks: dict[str, np.ndarray] = field(default_factory=dict)  # segmenter op -> (K, h, w) bool
-    mnad: np.ndarray | None = None  # (h', w') float32
-
-
-@dataclass
-class LogStats:
-    messages: int = 0  # bus messages read from the log
-    decoded: int = 0  # of those, decoded because the sweep needs their output
-    bad: int = 0  # payloads that failed to decode (counted, skipped)
-    duplicates: int = 0  # retransmissions of a (channel, run, seq) already read
-    late: int = 0  # messages of a frame already evaluated
-    truncated: str | None = None  # why reading stopped early, if it did
-    frames: int = 0  # (run, seq) groups formed
-    segmenters: dict[str, str] = field(default_factory=dict)  # segmenter op -> method
-
-
-def _to_uint8(image: np.ndarray) -> np.ndarray:
-    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
-def frames_from_log(path: str | Path, stats: LogStats, lag: int = 32) -> Iterator[FrameRecord]:
-    """Stream the log's frames, each once, after `lag` newer frames of its run have appeared (or at the end).
-
-    Counting frames, not seq numbers, keeps this right when a run's seqs are sparse (every k-th frame).
-
-    A truncated or corrupt log ends the stream at the last readable message; `stats.truncated` says why.
+    The sweep refines 15 fused maps per frame with the same masks; converting the masks once per
+    frame instead of once per call makes it several times faster. The results are bit-identical to
+    `umad_common.refine.refine` (tests/test_sweep.py checks it): `mean` scores use the same float64
+    product in the same chunks, `max` is exact whatever the order, painting is refine's own
+    `paint_masks`.
     """
-    buffer: dict[tuple[str, int], FrameRecord] = {}
-    seqs_seen: dict[str, list[int]] = {}  # run -> every seq seen, sorted
-    done: set[tuple[str, int]] = set()
-    seen: set[tuple[str, str, int]] = set()
 
-    def ready(run: str, upto: int) -> Iterator[FrameRecord]:
-        for key in sorted(k for k in buffer if k[0] == run and k[1] <= upto):
-            done.add(key)
-            stats.frames += 1
-            yield buffer.pop(key)
+    def __init__(self, masks: np.ndarray):
+        self.masks = masks  # (K, h, w) bool
+        flat = masks.reshape(masks.shape[0], masks.shape[1] * masks.shape[2])
+        self.areas = flat.sum(axis=1)
+        self.dense = flat.astype(np.float64)  # (K, N), the operand refine's `mean` builds on every call
+        self.chunk = max(1, MAX_CHUNK_ELEMENTS // max(1, flat.shape[1]))
+        owner, self.pixels = np.nonzero(flat)  # pixels of mask 0, then mask 1, ...
+        self.nonempty = np.flatnonzero(self.areas > 0)
+        self.starts = np.searchsorted(owner, self.nonempty)
 
-    messages = read_log(path)
-    while True:
-        try:
-            entry = next(messages)
-        except StopIteration:
-            break
-        except LogError as exc:
-            stats.truncated = str(exc)
-            break
-        except Exception as exc:  # a decompressor's own error type on a cut chunk: same meaning
-            stats.truncated = (
-                f"{path}: log is truncated or corrupt after {stats.messages} messages ({type(exc).__name__}: {exc})"
-            )
-            break
-        stats.messages += 1
-        parts = entry.topic.split("/")
-        if len(parts) != 4 or parts[0] != "umad" or parts[2].startswith("_") or parts[3] not in WANTED_OUTPUTS:
-            continue
-        op, output = parts[2], parts[3]
-        try:
-            msg = decode(entry.data)
-        except MessageError:
-            stats.bad += 1
-            continue
-        stats.decoded += 1
-        key = (msg.run, msg.seq)
-        if (entry.topic, *key) in seen:
-            stats.duplicates += 1
-            continue
-        seen.add((entry.topic, *key))
-        if key in done:
-            stats.late += 1
-            continue
-        record = buffer.setdefault(key, FrameRecord(msg.run, msg.seq))
-        _fill(record, op, output, msg, stats)
-        run_seqs = seqs_seen.setdefault(msg.run, [])
-        position = bisect.bisect_left(run_seqs, msg.seq)
-        if position == len(run_seqs) or run_seqs[position] != msg.seq:
-            run_seqs.insert(position, msg.seq)
-            if len(run_seqs) > lag:
-                yield from ready(msg.run, run_seqs[-lag - 1])
-    for run in sorted({k[0] for k in buffer}):
-        yield from ready(run, max(k[1] for k in buffer if k[0] == run))
+    def mean_scores(self, fused: np.ndarray) -> np.ndarray:
+        flat_scores = np.asarray(fused, dtype=np.float64).reshape(-1)
+        scores = np.full(self.masks.shape[0], -np.inf)
+        for start in range(0, self.masks.shape[0], self.chunk):
+            areas = self.areas[start : start + self.chunk]
+            sums = self.dense[start : start + self.chunk] @ flat_scores
+            scores[start : start + self.chunk] = np.where(areas > 0, sums / np.maximum(areas, 1), -np.inf)
+        return scores
 
+    def max_scores(self, fused: np.ndarray) -> np.ndarray:
+        scores = np.full(self.masks.shape[0], -np.inf)
+        if self.nonempty.size:
+            values = np.asarray(fused, dtype=np.float64).reshape(-1)[self.pixels]
+            scores[self.nonempty] = np.maximum.reduceat(values, self.starts)
+        return scores
 
-def _fill(record: FrameRecord, op: str, output: str, msg, stats: LogStats) -> None:
-    arrays, meta = msg.arrays, msg.meta
-    if output == "truth" and "anomaly" in arrays:
-        record.truth = np.array(arrays["anomaly"], dtype=np.uint8)
-    elif output == "frame" and "target" in arrays and "recon" in arrays:
-        record.target, record.recon = _to_uint8(arrays["target"]), _to_uint8(arrays["recon"])
-    elif output == "masks" and "masks" in arrays:
-        record.masks[op] = np.array(arrays["masks"], dtype=bool)
-        stats.segmenters.setdefault(op, str(meta.get("method", op)))
-    elif output == "map" and "map" in arrays:
-        if "metric" in meta:
-            record.diffs[canonical_metric(str(meta["metric"]))] = np.array(arrays["map"], dtype=np.float32)
-        elif meta.get("model") == "mnad" or op == "mnad":
-            record.mnad = np.array(arrays["map"], dtype=np.float32)
+    def refine_all(self, fused: np.ndarray) -> dict[str, np.ndarray]:
+        """{"mean", "max", "single"} refined maps of one fused map (uncovered pixels keep their score)."""
+        fused = np.asarray(fused, dtype=np.float32)
+        if self.masks.shape[0] == 0:
+            return {mode: fused.copy() for mode in REFINE_MODES}
+        mean = self.mean_scores(fused)
+        best = int(np.argmax(mean))
+        single = np.full_like(mean, -np.inf)
+        single[best] = mean[best]
+        return {
+            "mean": paint_masks(mean, self.masks, fused),
+            "max": paint_masks(self.max_scores(fused), self.masks, fused),
+            "single": paint_masks(single, self.masks, fused),
+        }
 
 
 @dataclass(frozen=True)
@@ -254,6 +180,7 @@ class Sweep:
         if not frame.diffs:
             return
         shape, labels, masks = model_size_inputs(frame)
+        mask_sets = {op: MaskSet(op_masks) for op, op_masks in masks.items()}
         usable = [i for i, row in enumerate(self.rows) if set(row) <= set(frame.diffs)]
         if self.default_row is None and usable:
             self.default_row = max(usable, key=lambda i: (len(self.rows[i]), i))
@@ -266,9 +193,8 @@ class Sweep:
             if i == self.default_row:
                 self._scenario(frame.run, "no mask").update(fused, labels)
                 pictures["fused"] = fused
-            for op, op_masks in masks.items():
-                for mode in REFINE_MODES:
-                    refined = refine(fused, op_masks, mode=mode, uncovered="keep")
+            for op, mask_set in mask_sets.items():
+                for mode, refined in mask_set.refine_all(fused).items():
                     self._count(Config(i, op, mode), refined, labels)
                     if i == self.default_row:
                         self._scenario(frame.run, f"{segmenters.get(op, op)} {mode}").update(refined, labels)
@@ -327,7 +253,7 @@ def model_size_inputs(frame: FrameRecord) -> tuple[tuple[int, int], np.ndarray, 
     """The difference maps' (h, w) (the largest, should they differ) with labels and masks resized to it."""
     shape = max((m.shape for m in frame.diffs.values()), key=lambda s: (s[0] * s[1], s))
     labels = resize_nearest(frame.truth, shape)
-    masks = {op: resize_nearest(m, shape) for op, m in sorted(frame.masks.items())}
+    masks = {op: resize_nearest(packed.unpack(), shape) for op, packed in sorted(frame.masks.items())}
     return shape, labels, masks
 
 

@@ -279,7 +279,19 @@ def test_missing_key_and_missing_folders(tmp_path, generated):
 def test_cli_writes_benchmark_and_preview(tmp_path):
     from umad_common.cli import main
 
-    args = ["generate", "synthetic", str(tmp_path), "--normal", "1", "--anomalous", "1", "--frames", "3", "--size", "64x48"]
+    args = [
+        "generate",
+        "synthetic",
+        str(tmp_path),
+        "--normal",
+        "1",
+        "--anomalous",
+        "1",
+        "--frames",
+        "3",
+        "--size",
+        "64x48",
+    ]
     assert main([*args, "--preview", "--seed", "2"]) == 0
     assert (tmp_path / "preview.png").is_file()
     assert (tmp_path / "Scenario_Configuration_Files" / "scenario_config_map_Synthetic.json").is_file()

@@ -394,7 +394,7 @@ def test_calibrate_uses_heldout_normal_drives_and_never_reads_labels(tmp_path, f
         AnoVoxScenario(held)[0]  # the label files really are poison to a reader that opens them
     config = WorldModelConfig(
         image_height=32, image_width=48, image_channels=(8, 8), lidar_rows=16, lidar_width=32, lidar_channels=(8, 8),
-        lidar_embed=8, route_size=16, route_channels=(8,), route_embed=8, deter_dim=16, hidden_dim=16,
+        lidar_embed=8, route_size=16, route_channels=(8,), route_embed=8, deter_dim=16, hidden_dim=16, frame_step=2,
     )  # fmt: skip
     torch.manual_seed(0)
     save_world_model(WorldModel(config), tmp_path / "wm", {"heldout_drives": ["Scenario_b"]})
@@ -407,7 +407,8 @@ def test_calibrate_uses_heldout_normal_drives_and_never_reads_labels(tmp_path, f
     calibration = load_calibration(out)
     assert sorted(calibration.scales) == ["abs", "mse", "perceptual", "ssim", "temporal"]
     assert calibration.info["drives"] == ["Scenario_b"] and calibration.info["frames"] == 4
-    assert calibration.stats["abs"]["frames"] == 4 and calibration.stats["temporal"]["frames"] == 3  # frame 0: none
+    assert calibration.info["stride"] == 2  # the model steps on seq 0 and 2; only seq 2 has a prediction
+    assert calibration.stats["abs"]["frames"] == 4 and calibration.stats["temporal"]["frames"] == 1
 
 
 def test_train_features_command_reads_only_training_rgb(tmp_path):

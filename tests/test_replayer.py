@@ -77,7 +77,22 @@ def test_every_max_frames_and_scenario_filter(generated):
 def test_single_scenario_folder_and_relative_source(generated):
     folder = find_scenarios(generated / "anomalous")[0]
     replayer = Replayer({"source": f"anomalous/{folder.name}"}, Context(base_dir=generated))
-    assert [s.name for s in replayer.scenarios] == [folder.name]
+    assert list(replayer.scenarios) == [folder.name]
+
+
+def test_frame_at_repeats_what_frames_yielded(generated):
+    replayer = Replayer({"source": str(generated), "every": 2})
+    frames = list(replayer.frames())
+    again = replayer.frame_at(frames[4].run, frames[4].seq)
+    assert (again.run, again.seq, again.stamp_ns) == (frames[4].run, frames[4].seq, frames[4].stamp_ns)
+    for port, output in frames[4].outputs.items():
+        assert again.outputs[port].meta == output.meta
+        for name, array in output.arrays.items():
+            np.testing.assert_array_equal(again.outputs[port].arrays[name], array)
+    with pytest.raises(IndexError):
+        replayer.frame_at(frames[0].run, 3)
+    with pytest.raises(KeyError):
+        replayer.frame_at("Scenario_other", 0)
 
 
 def test_benchmark_layout_and_missing_modalities(tmp_path, generated):

@@ -191,3 +191,22 @@ def test_quality_counts_anomaly_pixels_in_masks_at_least_half_anomaly():
     assert frame_quality(masks[:0], anomaly) == (5, 0, [0.0, 0.0], 0.0, 0.0)
     one_instance = np.where(anomaly == 1, 7, 0)  # A and B are parts of one object
     assert frame_quality(masks, anomaly, one_instance)[2] == pytest.approx([3 / 8])
+
+
+def test_measure_segmenter_reports_refined_ap_when_frames_carry_a_fused_map():
+    from umad_common.segmentation_quality import LabelledFrame, measure_segmenter
+
+    rng = np.random.default_rng(5)
+    frames = []
+    for seed in (0, 1):
+        rgb, instance, semantic = driving_scene(seed)
+        anomaly = (instance == 8).astype(np.uint8)
+        speckle = rng.random((H, W)).astype(np.float32) ** 4  # normal structure: sparse high errors
+        fused = np.clip(speckle + 0.4 * resize_nearest(anomaly, (H, W)), 0, 1)
+        frames.append(LabelledFrame("drive", seed, rgb[::2, ::2].copy(), anomaly, instance, semantic, fused))
+    gt = measure_segmenter({"method": "gt", "gt_stuff_min_area": 1}, frames)  # every pixel in a mask
+    assert gt.frames == 2 and gt.coverage == 1.0 and gt.best_iou == 1.0
+    assert gt.refined_ap == 1.0 > gt.pixel_ap
+    plain = [LabelledFrame(f.run, f.seq, f.target, f.anomaly, f.instance, f.semantic) for f in frames]
+    without_maps = measure_segmenter({"method": "gt"}, plain)
+    assert without_maps.refined_ap is None and without_maps.pixel_ap is None

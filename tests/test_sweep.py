@@ -10,10 +10,11 @@ import pytest
 from mcap.writer import CompressionType, Writer
 from sklearn.metrics import average_precision_score, roc_auc_score
 
-from replay.sweep import Config, paper_weight_rows, sweep_log
+from replay.sweep import Config, MaskSet, paper_weight_rows, sweep_log
 from umad_common.cli import main as umad_main
 from umad_common.messages import Message, encode
 from umad_common.metrics.components import component_metrics
+from umad_common.refine import refine
 from umad_common.viz.report import write_report
 
 H, W, h, w = 16, 24, 8, 12  # camera / truth size, model size
@@ -266,3 +267,19 @@ def _write(writer, channels, op, output, msg):
     if key not in channels:
         channels[key] = writer.register_channel(key, "msgpack", 0)
     writer.add_message(channels[key], msg.seq, encode(msg), msg.seq, msg.seq)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_mask_set_is_bit_identical_to_refine(seed):
+    rng = np.random.default_rng(seed)
+    fused = rng.random((24, 36)).astype(np.float32)
+    fused[:4, :4] = 0.5  # ties inside and across masks
+    overlapping = rng.random((9, 24, 36)) < 0.2
+    overlapping[3] = False  # an empty mask
+    overlapping[5] = overlapping[6]  # two equal masks: equal scores
+    tiling = np.stack([(np.arange(36)[None, :] // 6 == k).repeat(24, axis=0) for k in range(6)])
+    for masks in (overlapping, tiling, np.zeros((0, 24, 36), bool)):
+        refined = MaskSet(masks).refine_all(fused)
+        for mode in ("mean", "max", "single"):
+            expected = refine(fused, masks, mode=mode, uncovered="keep")
+            assert refined[mode].dtype == expected.dtype and np.array_equal(refined[mode], expected), mode

@@ -214,3 +214,108 @@ def test_predictor_fails_early_on_missing_or_mismatched_weights(tmp_path, weight
         WorldModelPredictor({"model": str(weights)})
     with pytest.raises(ValueError, match="horizon"):
         WorldModelPredictor({"model": str(weights), "horizon": 0})
+
+
+# ---------------------------------------------------------------------------------------------
+# Training and evaluation on a fabricated AnoVox folder (generator layout, 48x80 camera)
+
+
+def write_drive(folder, frames: int, seed: int, anomalous: bool = False) -> None:
+    """A tiny generator-layout scenario. Normal drives get undecodable label files, so a reader
+    that touched a label would fail."""
+    import cv2
+
+    from umad_common.datasets.anovox import write_key_values
+
+    rng = np.random.default_rng(seed)
+    sensors = {key: folder / f"{key}(0, 0, 1.8)(0, 0, 0)_abc" for key in ("RGB-CAM", "LIDAR", "SEMANTIC-CAM")}
+    for path in [*sensors.values(), folder / "ACTION", folder / "ROUTE_MAP"]:
+        path.mkdir(parents=True)
+    for fid in range(100, 100 + frames):
+        rgb = np.zeros((48, 80, 3), np.uint8)
+        rgb[:20] = (120, 170, 230)
+        rgb[20:] = (90, 90, 90)
+        semantic = np.full((48, 80), 11, np.uint8)
+        semantic[20:] = 1
+        if anomalous:
+            rgb[30:40, 30:45] = (250, 20, 200)
+            semantic[30:40, 30:45] = 100
+        rgb = np.clip(rgb.astype(int) + rng.integers(-8, 9, rgb.shape), 0, 255).astype(np.uint8)
+        cv2.imwrite(str(sensors["RGB-CAM"] / f"RGB-CAM_{fid}.png"), rgb[..., ::-1])
+        np.save(sensors["LIDAR"] / f"LIDAR_{fid}.npy", rng.normal(0, 10, (300, 4)).astype(np.float32))
+        semantic_path = sensors["SEMANTIC-CAM"] / f"SEMANTIC-CAM_{fid}.png"
+        if anomalous:
+            cv2.imwrite(str(semantic_path), semantic)
+        else:
+            semantic_path.write_bytes(b"not a png")
+        cv2.imwrite(str(folder / "ROUTE_MAP" / f"ROUTE_MAP_{fid}.png"), np.full((192, 192), 255, np.uint8))
+        write_key_values(
+            folder / "ACTION" / f"ACTION_{fid}.csv",
+            {
+                "frame_id": fid,
+                "speed": 20.0,
+                "throttle": rng.uniform(0, 1),
+                "steer": rng.uniform(-0.2, 0.2),
+                "brake": 0.0,
+            },
+        )
+
+
+@pytest.fixture(scope="module")
+def tiny_benchmark(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench")
+    for i in range(3):
+        write_drive(root / "normal" / f"Scenario_n{i}", frames=12, seed=i)
+    write_drive(root / "anomalous" / "Scenario_a0", frames=6, seed=9, anomalous=True)
+    return root
+
+
+def test_training_writes_weights_is_deterministic_and_resumes(tiny_benchmark, tmp_path, monkeypatch):
+    from umad_common.training import train_world_model as training
+    from umad_common.training.train_world_model import TrainConfig, train_world_model
+
+    def train(out, epochs, resume=False):
+        return train_world_model(
+            tiny_benchmark,
+            out,
+            epochs=epochs,
+            seed=3,
+            resume=resume,
+            threads=1,
+            model_config=WorldModelConfig(**TINY),
+            train_config=TrainConfig(sequence_length=4, batch_size=2, holdout=1),
+        )
+
+    record = train(tmp_path / "a", epochs=2)
+    assert record["heldout_drives"] == ["Scenario_n2"] and record["training_drives"] == ["Scenario_n0", "Scenario_n1"]
+    assert len(record["history"]) == 2 and np.isfinite(record["history"][-1]["loss"])
+    assert (tmp_path / "a.train.pt").is_file()
+    saved = []
+
+    def save_then_stop(*args, **kwargs):  # the process dies while writing epoch 2
+        saved.append(1)
+        if len(saved) == 2:
+            raise KeyboardInterrupt
+        return save_world_model(*args, **kwargs)
+
+    monkeypatch.setattr(training, "save_world_model", save_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        train(tmp_path / "b", epochs=2)
+    monkeypatch.undo()
+    train(tmp_path / "b", epochs=2, resume=True)
+    a, _ = load_world_model(tmp_path / "a")
+    b, _ = load_world_model(tmp_path / "b")
+    for name, tensor in a.state_dict().items():
+        assert torch.equal(tensor, b.state_dict()[name]), name
+    with pytest.raises(ValueError, match="already trained 2 epochs"):
+        train(tmp_path / "b", epochs=2, resume=True)
+
+
+def test_evaluation_reports_psnr_and_anomaly_road_ratio(tiny_benchmark):
+    from umad_common.training.evaluate_world_model import evaluate_world_model
+
+    figures = evaluate_world_model(tiny_model(), tiny_benchmark, heldout=["Scenario_n2"])
+    assert figures["heldout_drives"] == 1 and figures["heldout_frames"] == 12
+    assert figures["anomalous_drives"] == 1 and figures["anomaly_pixels"] > 0
+    assert 0 < figures["heldout_recon_psnr"] < 60
+    assert figures["anomaly_road_ratio"] == pytest.approx(figures["anomaly_error"] / figures["road_error"])

@@ -310,7 +310,7 @@ class Launcher:
     def _on_record(self, recorder: McapRecorder, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         parts = key.split("/")
-        if len(parts) > 2 and parts[2] in ("_stats", "_ack", "_live"):
+        if len(parts) > 2 and parts[2] in ("_stats", "_ack", "_live", "_left"):
             return
         recorder.write(key, sample.payload.to_bytes())
 

@@ -370,6 +370,11 @@ class OperatorRuntime:
         self.stats.param_changes += 1
         self.log.info("parameters changed: %s", updates)
 
+    def _live_mode(self) -> bool:
+        """Live (a source paces in real time): joins may give up at their deadline. Lossless (the
+        default): every expected input is waited for."""
+        return any(self.graph.op(src).params.get("pacing") == "realtime" for src in self.graph.sources())
+
     def _request_rewind(self, run: str, seq: int) -> None:
         """An ordered operator that (re)started mid-run rebuilds its state by re-observing the run
         from its first frame: ask the sources to send frames [0, seq) again. Every other consumer
@@ -440,7 +445,7 @@ class OperatorRuntime:
         ended: dict[str, list[tuple[str, bytes]]] = {}
         next_seq: dict[str, int] = defaultdict(int)
         in_order: dict[str, dict[int, Frame]] = defaultdict(dict)
-        deadline_s = float(getattr(self.operator.params, "deadline_ms", 0) or 0) / 1e3
+        deadline_s = float(getattr(self.operator.params, "deadline_ms", 0) or 0) / 1e3 if self._live_mode() else 0.0
 
         def finish(frame: Frame) -> None:
             key = (frame.run, frame.seq)

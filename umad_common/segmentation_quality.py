@@ -13,6 +13,9 @@ Per method, over every frame of the given drives, at the world model's size:
   normal structure. Finer masks raise `coverage` trivially (one-pixel masks reach 100 %) but leave
   the speckle as it was; a good segmenter has both figures high.
 - `masks_per_frame` and `ms_per_frame` (the segmenter operator's `process`, one thread).
+- `refined_ap` / `pixel_ap`, when the frames carry a fused difference map (`fused_maps_along`
+  runs a world model over the drives): pooled pixel AP after `mean` refinement with the masks
+  (uncovered pixels keep their score), and of the fused map itself. This is what the masks are for.
 """
 
 from __future__ import annotations
@@ -26,8 +29,9 @@ import cv2
 import numpy as np
 
 from umad_common.messages import Message
+from umad_common.metrics.pixel import PixelMetrics
 from umad_common.operator import Frame
-from umad_common.refine import resize_nearest
+from umad_common.refine import fuse, refine, resize_nearest
 from umad_common.segmentation import connected_regions
 
 IGNORE = 255
@@ -44,6 +48,7 @@ class LabelledFrame:
     anomaly: np.ndarray  # (H, W) uint8: 0 normal, 1 anomaly, 255 ignore
     instance: np.ndarray | None  # (H, W) int32, 0 = none
     semantic: np.ndarray | None  # (H, W) uint8
+    fused: np.ndarray | None = None  # (h, w) float32 fused difference map, when measuring AP
 
 
 @dataclass
@@ -58,30 +63,76 @@ class SegmenterQuality:
     normal_segment_px: float
     masks_per_frame: float
     ms_per_frame: float
+    refined_ap: float | None = None
+    pixel_ap: float | None = None
 
     def row(self) -> str:
-        return (
+        ap = "" if self.refined_ap is None else f"AP {self.refined_ap:6.1%} (pixel {self.pixel_ap:5.1%})  "
+        return ap + (
             f"coverage {self.coverage:6.1%}  best IoU {self.best_iou:5.3f}  normal seg px {self.normal_segment_px:7.0f}  "
             f"masks/frame {self.masks_per_frame:6.1f}  "
             f"{self.ms_per_frame:7.1f} ms/frame  {self.params}"
         )
 
 
-def anovox_frames(root: Path, size: tuple[int, int] = WORLD_MODEL_SIZE, every: int = 1) -> Iterator[LabelledFrame]:
+def anovox_frames(
+    root: Path, size: tuple[int, int] = WORLD_MODEL_SIZE, every: int = 1, world_model: Path | None = None
+) -> Iterator[LabelledFrame]:
     """Frames of every scenario under `root` with at least one anomaly pixel; the camera resized
-    (no crop, area interpolation) to `size` (h, w) like the world model's target."""
+    (no crop, area interpolation) to `size` (h, w) like the world model's target. With a
+    `world_model`, every frame of a drive goes through it in order and each yielded frame carries
+    its fused difference map (see `fused_maps_along`)."""
     from umad_common.datasets.anovox import AnoVoxScenario, find_scenarios
 
-    for path in find_scenarios(root):
-        scenario = AnoVoxScenario(path, every=every)
-        for seq in range(len(scenario)):
+    def drive(path: Path, step: int) -> Iterator[tuple[LabelledFrame, object]]:
+        scenario = AnoVoxScenario(path)
+        for seq in range(0, len(scenario), step):
             frame = scenario[seq]
-            if not (frame.anomaly == 1).any():
-                continue
             target = cv2.resize(frame.rgb, (size[1], size[0]), interpolation=cv2.INTER_AREA)
-            yield LabelledFrame(
+            sample = LabelledFrame(
                 scenario.name, seq, target.astype(np.float32) / 255.0, frame.anomaly, frame.instance, frame.semantic
             )
+            yield sample, frame
+
+    def wanted(sample: LabelledFrame) -> bool:
+        return sample.seq % every == 0 and bool((sample.anomaly == 1).any())
+
+    for path in find_scenarios(root):
+        if world_model is None:
+            yield from (sample for sample, _ in drive(path, every) if wanted(sample))
+        else:
+            yield from (sample for sample in fused_maps_along(drive(path, 1), world_model) if wanted(sample))
+
+
+def fused_maps_along(
+    frames: Iterable[tuple[LabelledFrame, object]],
+    world_model: Path,
+    metrics: tuple[str, ...] = ("abs", "ssim"),
+) -> Iterator[LabelledFrame]:
+    """Attach to each labelled frame the fused map of a real world model's difference maps.
+
+    `frames` holds (labelled frame, AnoVoxFrame) pairs of every frame of each drive in order (the
+    world model is stateful); each map is min-max normalised per frame and fused with equal weights,
+    the paper's plain setting.
+    """
+    from operators.world_model import WorldModelPredictor
+    from umad_common.differences import build_metric, minmax
+
+    predictor = WorldModelPredictor({"model": str(world_model), "threads": 1})
+    difference = {name: build_metric(name) for name in metrics}
+    weights = dict.fromkeys(metrics, 1.0)
+    for sample, raw in frames:
+        inputs = {
+            "camera": Message(sample.run, sample.seq, arrays={"rgb": raw.rgb}),
+            "lidar": Message(sample.run, sample.seq, arrays={"points": raw.lidar}),
+            "ego": Message(sample.run, sample.seq, arrays={"ego": raw.ego.as_array()}),
+            "route": Message(sample.run, sample.seq, arrays={"route": raw.route}),
+        }
+        out = predictor.process(Frame(sample.run, sample.seq, 0, inputs=inputs))["frame"].arrays
+        arrays = (out["target"], out["recon"], out["preds"], out["pred_valid"])
+        maps = {name: minmax(metric(*arrays)) for name, metric in difference.items()}
+        sample.fused = fuse(maps, weights)
+        yield sample
 
 
 def operator_frame(sample: LabelledFrame) -> Frame:
@@ -142,6 +193,7 @@ def measure_segmenter(params: dict, frames: Iterable[LabelledFrame]) -> Segmente
     segmenter = Segmenter(params)
     count = total = covered = masks_total = 0
     seconds = normal_area = normal_pixels = 0.0
+    refined_metrics, pixel_metrics = PixelMetrics(), PixelMetrics()
     best_ious: list[float] = []
     for sample in frames:
         frame = operator_frame(sample)
@@ -155,6 +207,11 @@ def measure_segmenter(params: dict, frames: Iterable[LabelledFrame]) -> Segmente
         )
         normal_area += frame_normal_area
         normal_pixels += frame_normal
+        if sample.fused is not None:
+            labels = resize_nearest(sample.anomaly, sample.fused.shape)
+            refined = refine(sample.fused, resize_nearest(masks, sample.fused.shape), mode="mean", uncovered="keep")
+            refined_metrics.update(refined, labels)
+            pixel_metrics.update(sample.fused, labels)
         count += 1
         total += frame_total
         covered += frame_covered
@@ -171,4 +228,6 @@ def measure_segmenter(params: dict, frames: Iterable[LabelledFrame]) -> Segmente
         normal_segment_px=normal_area / max(normal_pixels, 1.0),
         masks_per_frame=masks_total / count,
         ms_per_frame=1000.0 * seconds / count,
+        refined_ap=float(refined_metrics.compute()["AP"]) if refined_metrics.n_anomaly else None,
+        pixel_ap=float(pixel_metrics.compute()["AP"]) if pixel_metrics.n_anomaly else None,
     )

@@ -1,6 +1,7 @@
 """Segmenter benchmark: ms/frame and anomaly isolation of each segmenter method on labelled drives.
 
-    python -m umad_common.commands.bench_segmenters --data data/synth/anomalous [--tune] [--json out.json]
+    python -m umad_common.commands.bench_segmenters --data data/synth/anomalous [--tune]
+        [--world-model umad_common/assets/world_model.safetensors] [--json out.json]
 
 Figures are defined in `umad_common.segmentation_quality`; `--tune` adds a small grid around each
 method's defaults (the grid that chose the defaults in operators/segmenter.py).
@@ -41,6 +42,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--every", type=int, default=1, help="use every n-th frame of each scenario")
     parser.add_argument("--max-frames", type=int, default=0, help="stop after this many anomalous frames (0 = all)")
     parser.add_argument("--tune", action="store_true", help="measure a small parameter grid per method")
+    parser.add_argument(
+        "--world-model",
+        type=Path,
+        help="also measure pixel AP after mean refinement, on abs+ssim maps of this world model (safetensors)",
+    )
     parser.add_argument("--json", type=Path, help="also write the rows as JSON here")
 
 
@@ -51,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
 
     threadpool_limits(1)  # one core, as in a deployed replica; the machine is shared
     frames = []
-    for sample in anovox_frames(args.data, every=args.every):
+    for sample in anovox_frames(args.data, every=args.every, world_model=args.world_model):
         frames.append(sample)
         if args.max_frames and len(frames) >= args.max_frames:
             break

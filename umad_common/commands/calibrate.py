@@ -78,33 +78,24 @@ def calibration_drives(data: Path, record: dict) -> tuple[list[Path], str]:
     return drives, "every normal drive (world model lists no held-out drive here)"
 
 
-def sensor_frames(drive: Path, every: int, limit: int) -> Iterator:
-    """Frames of one drive as the replayer sends them: camera, lidar, ego and route only (the
-    reader is blind to label folders, so no label file is ever opened)."""
-    import numpy as np
-
+def sensor_frames(scenario, limit: int) -> Iterator:
+    """The first `limit` frames of a label-free scenario (`label_free_scenario`: its reader cannot
+    open a label file) as the replayer sends them to the world model: camera, lidar, ego, route."""
+    from operators.replayer import frame_outputs
+    from operators.world_model import WorldModelPredictor
     from umad_common.messages import Message
     from umad_common.operator import Frame
-    from umad_common.training.train_features import label_free_scenario
 
-    scenario = label_free_scenario(drive, every=every)
+    ports = [port.name for port in WorldModelPredictor.inputs]
     for seq in range(min(len(scenario), limit)):
-        item = scenario[seq]
-        ego = item.ego
-        lidar = item.lidar if item.lidar is not None else np.zeros((0, 4), np.float32)
-        route = item.route if item.route is not None else np.zeros((192, 192), np.uint8)
-        arrays = {
-            "camera": {"rgb": item.rgb},
-            "lidar": {"points": lidar},
-            "ego": {"ego": np.array([ego.speed_mps, ego.throttle, ego.brake, ego.steer], np.float32)},
-            "route": {"route": route},
+        outputs = frame_outputs(scenario[seq], scenario.name)
+        inputs = {
+            port: Message(
+                scenario.name, seq, 0, producer="calibrate", meta=outputs[port].meta, arrays=outputs[port].arrays
+            )
+            for port in ports
         }
-        yield Frame(
-            scenario.name,
-            seq,
-            0,
-            inputs={port: Message(scenario.name, seq, 0, producer="calibrate", arrays=a) for port, a in arrays.items()},
-        )
+        yield Frame(scenario.name, seq, 0, inputs=inputs)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -114,14 +105,19 @@ def run(args: argparse.Namespace) -> int:
     from operators.world_model import WorldModelPredictor
     from umad_common.differences import METRICS, CalibrationFitter, MetricOptions, build_metric
     from umad_common.models.world_model import weight_paths
+    from umad_common.training.train_features import label_free_scenario
 
     if args.frames < 1:
         raise SystemExit(f"--frames is {args.frames}; expected at least 1")
     torch.set_num_threads(args.threads)
     weights, record_path = weight_paths(args.world_model)
-    predictor = WorldModelPredictor({"model": str(weights.resolve()), "horizon": args.horizon, "threads": args.threads})
+    if not record_path.is_file():
+        raise SystemExit(f"{record_path}: world model config not found; expected it beside {weights.name}")
     record = json.loads(record_path.read_text())
-    every = int(record.get("config", {}).get("frame_step", 1))
+    stride = int(record.get("config", {}).get("frame_step", 1))  # as the graph runs it on 10 Hz frames
+    predictor = WorldModelPredictor(
+        {"model": str(weights.resolve()), "horizon": args.horizon, "stride": stride, "threads": args.threads}
+    )
 
     features = args.features
     if features is None and (ASSETS / "feature_net.safetensors").is_file():
@@ -136,12 +132,16 @@ def run(args: argparse.Namespace) -> int:
     metrics += [build_metric(path, MetricOptions(features=features)) for path in args.metric]
 
     drives, why = calibration_drives(args.data, record)
+    scenarios = [label_free_scenario(drive) for drive in drives]
     per_drive = -(-args.frames // len(drives))
+    plan = []  # frames taken from the start of each drive (the world model needs them in order)
+    for scenario in scenarios:
+        plan.append(min(len(scenario), per_drive, args.frames - sum(plan)))
     fitter = CalibrationFitter()
     frames = 0
-    with tqdm(total=min(args.frames, per_drive * len(drives)), desc="calibrate", unit="frame") as progress:
-        for drive in drives:
-            for frame in sensor_frames(drive, every, min(per_drive, args.frames - frames)):
+    with tqdm(total=sum(plan), desc="calibrate", unit="frame") as progress:
+        for scenario, limit in zip(scenarios, plan, strict=True):
+            for frame in sensor_frames(scenario, limit):
                 arrays = predictor.process(frame)["frame"].arrays
                 target, recon, preds, valid = (arrays[k] for k in ("target", "recon", "preds", "pred_valid"))
                 for metric in metrics:
@@ -157,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
         "drives": [d.name for d in drives],
         "drives_chosen": why,
         "frames": frames,
-        "frame_step": every,
+        "stride": stride,
         "horizon": args.horizon,
         "image_size": list(target.shape[:2]),
         "world_model": str(weights),

@@ -22,6 +22,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--lag", type=int, default=32, help="frames a run must move on before a frame counts as complete (default 32)"
     )
     parser.add_argument(
+        "--no-components",
+        action="store_true",
+        help="skip the second read of the log (SegmentMeIfYouCan component metrics)",
+    )
+    parser.add_argument(
         "--overlays",
         type=int,
         default=6,

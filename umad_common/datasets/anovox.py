@@ -19,7 +19,7 @@ naming the file.
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -396,7 +396,7 @@ class AnoVoxScenario:
             route = route if route.ndim == 2 else route[..., 0].copy()
         return AnoVoxFrame(frame_id, rgb, depth, semantic, instance, anomaly, lidar, ego, route)
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[AnoVoxFrame]:
         for index in range(len(self)):
             yield self[index]
 

@@ -24,9 +24,7 @@ from umad_common.models.vgg16 import WeightsError, load_into, read_state_dict
 
 @dataclass
 class FeatureNetConfig:
-    widths: tuple[int, int, int, int] = (16, 32, 64, 128)  # channels of the four levels
-    pools: tuple[int, int, int, int] = (1, 2, 2, 1)  # max-pool factor before each level: resolutions 1, 1/2, 1/4, 1/4
-    dilations: tuple[int, int, int, int] = (1, 1, 1, 2)  # conv dilation per level (grows the view without pooling)
+    widths: tuple[int, int, int, int] = (16, 32, 64, 128)  # channels of the four levels (1, 1/2, 1/4, 1/8)
     mean: tuple[float, float, float] = (0.5, 0.5, 0.5)  # input normalisation, RGB in [0, 1]
     std: tuple[float, float, float] = (0.25, 0.25, 0.25)
     training: dict = field(default_factory=dict)  # how the file was made (data, epochs, seed, loss)
@@ -37,18 +35,16 @@ class FeatureNetConfig:
             cfg = cls(**data)
         except TypeError as exc:
             raise WeightsError(f"{source}: not a feature net config ({exc})") from None
-        cfg.widths, cfg.pools, cfg.dilations = (tuple(int(v) for v in t) for t in (cfg.widths, cfg.pools, cfg.dilations))
+        cfg.widths = tuple(int(w) for w in cfg.widths)
         cfg.mean = tuple(float(v) for v in cfg.mean)
         cfg.std = tuple(float(v) for v in cfg.std)
-        if not (len(cfg.widths) == len(cfg.pools) == len(cfg.dilations) == 4 and len(cfg.mean) == len(cfg.std) == 3):
-            raise WeightsError(f"{source}: expected 4 widths, pools and dilations and 3 mean/std values, got {data}")
+        if len(cfg.widths) != 4 or len(cfg.mean) != 3 or len(cfg.std) != 3:
+            raise WeightsError(f"{source}: expected 4 widths and 3 mean/std values, got {data}")
         return cfg
 
 
 class FeatureNet(nn.Module):
-    """Two 3x3 conv + ReLU per level, max-pools between levels: VGG's pattern at 1/4 of its width,
-    and the last level stays at 1/4 resolution (dilated instead of pooled): anomalies are often a
-    few pixels wide at the world model's 192x128, and a 1/8 map smears them when upsampled."""
+    """Two 3x3 conv + ReLU per level, 2x2 max-pool between levels (VGG's pattern, 1/4 the width)."""
 
     def __init__(self, config: FeatureNetConfig | None = None) -> None:
         super().__init__()
@@ -56,15 +52,11 @@ class FeatureNet(nn.Module):
         layers: list[nn.Module] = []
         self.taps: list[int] = []
         channels = 3
-        cfg = self.config
-        for width, pool, dilation in zip(cfg.widths, cfg.pools, cfg.dilations, strict=True):
-            if pool > 1:
-                layers.append(nn.MaxPool2d(kernel_size=pool, stride=pool))
+        for level, width in enumerate(self.config.widths):
+            if level > 0:
+                layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
             for _ in range(2):
-                layers += [
-                    nn.Conv2d(channels, width, kernel_size=3, padding=dilation, dilation=dilation),
-                    nn.ReLU(inplace=True),
-                ]
+                layers += [nn.Conv2d(channels, width, kernel_size=3, padding=1), nn.ReLU(inplace=True)]
                 channels = width
             self.taps.append(len(layers) - 1)
         self.features = nn.Sequential(*layers)
@@ -72,7 +64,7 @@ class FeatureNet(nn.Module):
         self.register_buffer("std", torch.tensor(self.config.std).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, rgb: torch.Tensor) -> list[torch.Tensor]:
-        """(B, 3, H, W) in [0, 1] -> four maps (B, widths[i], H / s_i, W / s_i), s_i = pools[0] *..* pools[i]."""
+        """(B, 3, H, W) in [0, 1] -> four maps (B, widths[i], H/2^i, W/2^i), i = 0..3."""
         x = (rgb - self.mean) / self.std
         taps = set(self.taps)
         out = []

@@ -2,7 +2,8 @@
 
 Per model step t the camera image, the lidar (as a 64 x W range image), the route map and the speed
 are encoded into one embedding; a recurrent state s_t = (h_t, z_t) holds a deterministic GRU path
-h_t and a small stochastic latent z_t:
+h_t and a small stochastic latent z_t, a Gaussian map on a coarse grid (4 channels on 8 x 12 cells
+for a 128 x 192 image):
 
     h_t = GRU(h_{t-1}, [z_{t-1}, a_{t-1}])      a = [throttle - brake, steer], the control after t-1
     prior      p(z_t | h_t)                     what the model expects without looking
@@ -11,8 +12,9 @@ h_t and a small stochastic latent z_t:
 
 `observe` runs the posterior over a sequence and reconstructs every frame; `imagine` rolls the prior
 forward with given actions and decodes predicted frames. The image reaches the decoder only through
-the state (a few hundred numbers, no skip connections), so the model can only draw what its training
-on normal driving taught it: an object it never saw is not reproduced, and that is the signal.
+the state (h: 256 numbers, z: 384 by default; no skip connections), so the model can only draw what
+its training on normal driving taught it: an object it never saw is not reproduced, and that is the
+signal.
 
 The preprocessing that defines the inputs (plain resize without crop, lidar range projection) lives
 here too, so training, evaluation and the predictor operator feed the model identically.
@@ -70,7 +72,9 @@ class WorldModelConfig:
             )
         lidar_factor = 2 ** len(self.lidar_channels)
         if self.lidar_rows % lidar_factor or self.lidar_width % lidar_factor:
-            raise ValueError(f"lidar range image {self.lidar_rows}x{self.lidar_width} must be divisible by {lidar_factor}")
+            raise ValueError(
+                f"lidar range image {self.lidar_rows}x{self.lidar_width} must be divisible by {lidar_factor}"
+            )
         if self.route_size % 2 ** len(self.route_channels):
             raise ValueError(f"route_size {self.route_size} must be divisible by {2 ** len(self.route_channels)}")
 
@@ -178,7 +182,9 @@ def deconv_stack(channels: tuple[int, ...], out_channels: int) -> nn.Sequential:
     layers: list[nn.Module] = []
     for i, in_channels in enumerate(channels):
         last = i == len(channels) - 1
-        layers.append(nn.ConvTranspose2d(in_channels, out_channels if last else channels[i + 1], 4, stride=2, padding=1))
+        layers.append(
+            nn.ConvTranspose2d(in_channels, out_channels if last else channels[i + 1], 4, stride=2, padding=1)
+        )
         if not last:
             layers.append(nn.SiLU())
     return nn.Sequential(*layers)
@@ -283,7 +289,11 @@ class WorldModel(nn.Module):
         b, t = obs.rgb.shape[:2]
         image = self.image_encoder(obs.rgb.flatten(0, 1) - 0.5)  # (BT, C, rows, cols)
         side = torch.cat(
-            [self.lidar_encoder(obs.lidar.flatten(0, 1)), self.route_encoder(obs.route.flatten(0, 1) - 0.5), obs.speed.flatten(0, 1)],
+            [
+                self.lidar_encoder(obs.lidar.flatten(0, 1)),
+                self.route_encoder(obs.route.flatten(0, 1) - 0.5),
+                obs.speed.flatten(0, 1),
+            ],
             dim=-1,
         )
         side = self.side(side)[:, :, None, None].expand(-1, -1, *image.shape[2:])  # (BT, S, rows, cols)
@@ -310,12 +320,14 @@ class WorldModel(nn.Module):
         """q(z_t | h_t, o_t) from h (B, deter_dim) and one step's embedding grid (B, E, rows, cols)."""
         return self._gaussian(self.posterior_net(torch.cat([self.context_grid(h), embed], dim=1)))
 
-    def decode(self, state: State) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """States (N, .) -> RGB (N, 3, H, W) in [0, 1] and range (N, 1, rows, width) or None."""
+    def decode(self, state: State, with_lidar: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """States (N, .) -> RGB (N, 3, H, W) in [0, 1] and range (N, 1, rows, width) (None when the
+        model has no lidar decoder or `with_lidar` is False)."""
         z = state.z.view(-1, self.config.stoch_channels, *self.config.grid)
         x = F.silu(self.decoder_input(torch.cat([self.context_grid(state.h), z], dim=1)))
         rgb = torch.sigmoid(self.image_decoder(x))
-        lidar = self.lidar_decoder(torch.cat([state.h, state.z], dim=-1)) if self.config.decode_lidar else None
+        with_lidar = with_lidar and self.config.decode_lidar
+        lidar = self.lidar_decoder(torch.cat([state.h, state.z], dim=-1)) if with_lidar else None
         return rgb, lidar
 
     # -- sequences ------------------------------------------------------------------------------
@@ -370,7 +382,7 @@ class WorldModel(nn.Module):
             hs.append(state.h)
             zs.append(state.z)
         states = State(torch.stack(hs, 1), torch.stack(zs, 1))
-        rgb, _ = self.decode(State(states.h.flatten(0, 1), states.z.flatten(0, 1)))
+        rgb, _ = self.decode(State(states.h.flatten(0, 1), states.z.flatten(0, 1)), with_lidar=False)
         return ImagineResult(states, rgb.view(state.h.shape[0], n, *rgb.shape[1:]))
 
 
@@ -404,7 +416,9 @@ def load_world_model(path: str | Path) -> tuple[WorldModel, dict]:
     weights, meta = weight_paths(path)
     for file in (weights, meta):
         if not file.is_file():
-            raise WeightsError(f"{file}: world model file not found; expected {weights.name} with {meta.name} beside it")
+            raise WeightsError(
+                f"{file}: world model file not found; expected {weights.name} with {meta.name} beside it"
+            )
     try:
         record = json.loads(meta.read_text())
         config = WorldModelConfig.from_dict(record["config"])
@@ -419,7 +433,9 @@ def load_world_model(path: str | Path) -> tuple[WorldModel, dict]:
     missing = sorted(set(expected) - set(tensors))
     unexpected = sorted(set(tensors) - set(expected))
     if missing or unexpected:
-        raise WeightsError(f"{weights}: tensors missing {missing[:5]}, unexpected {unexpected[:5]} for config {meta.name}")
+        raise WeightsError(
+            f"{weights}: tensors missing {missing[:5]}, unexpected {unexpected[:5]} for config {meta.name}"
+        )
     for name, tensor in expected.items():
         if tuple(tensors[name].shape) != tuple(tensor.shape):
             raise WeightsError(

@@ -26,6 +26,7 @@ from umad_common.training.train_world_model import (
     load_drive,
     normal_root,
     observation_batch,
+    open_inputs_only,
     psnr,
     scale_speed,
 )
@@ -44,7 +45,7 @@ def reconstruct_drive(model: WorldModel, drive: DriveArrays, chunk: int = 32) ->
         obs, prev_actions = observation_batch([drive], [(0, start)], length)
         result = model.observe(scale_speed(obs, model.config), prev_actions, state=state)
         state = State(result.states.h[:, -1], result.states.z[:, -1])
-        prior_rgb, _ = model.decode(State(result.states.h[0], result.prior_mean[0]))
+        prior_rgb, _ = model.decode(State(result.states.h[0], result.prior_mean[0]), with_lidar=False)
         recons.append(result.rgb[0].permute(0, 2, 3, 1).numpy())
         preds.append(prior_rgb.permute(0, 2, 3, 1).numpy())
     return np.concatenate(recons), np.concatenate(preds)
@@ -77,7 +78,7 @@ def evaluate_world_model(
     heldout_paths = [p for p in find_scenarios(normal_root(Path(data))) if p.name in set(heldout)]
     recon_se, pred_se, values = 0.0, 0.0, 0
     for path in heldout_paths:
-        drive = load_drive(AnoVoxScenario(path, every=config.frame_step), config)
+        drive = load_drive(open_inputs_only(path, config.frame_step), config)
         recon, pred = reconstruct_drive(model, drive)
         target = drive.rgb.astype(np.float32) / 255.0
         recon_se += float(((recon - target) ** 2).sum())
@@ -87,7 +88,9 @@ def evaluate_world_model(
         frames = values // (config.image_height * config.image_width * 3)
         figures["heldout_drives"] = len(heldout_paths)
         figures["heldout_recon_psnr"] = psnr(recon_se / values)
-        figures["heldout_pred1_psnr"] = psnr(pred_se / (values - 3 * config.image_height * config.image_width * len(heldout_paths)))
+        figures["heldout_pred1_psnr"] = psnr(
+            pred_se / (values - 3 * config.image_height * config.image_width * len(heldout_paths))
+        )
         figures["heldout_frames"] = int(frames)
 
     anomalous_root = Path(data) / "anomalous"
@@ -96,10 +99,10 @@ def evaluate_world_model(
     sums = {"anomaly": 0.0, "road": 0.0}
     counts = {"anomaly": 0, "road": 0}
     for path in paths:
-        scenario = AnoVoxScenario(path, every=config.frame_step)
-        drive = load_drive(scenario, config)
+        drive = load_drive(open_inputs_only(path, config.frame_step), config)
         recon, _ = reconstruct_drive(model, drive)
         error = np.abs(recon - drive.rgb.astype(np.float32) / 255.0).mean(-1)  # (T, h, w)
+        scenario = AnoVoxScenario(path, every=config.frame_step)
         anomaly, road = label_masks(scenario, config.image_height, config.image_width)
         for name, mask in (("anomaly", anomaly), ("road", road)):
             sums[name] += float(error[mask].sum())

@@ -12,6 +12,7 @@ import numpy as np
 from umad_common.datasets.synthetic.raycast import (
     GROUND_ROAD,
     GROUND_SIDEWALK,
+    GroundHit,
     camera_rects,
     intersect_ground,
     intersect_prims,
@@ -313,7 +314,16 @@ class Renderer:
             )
         return colour
 
-    def _shade_ground(self, ground, line, px, origin, dirs, rng_m) -> np.ndarray:
+    def _shade_ground(
+        self,
+        ground: GroundHit,
+        line: np.ndarray,
+        px: np.ndarray,
+        origin: np.ndarray,
+        dirs: np.ndarray,
+        rng_m: np.ndarray,
+    ) -> np.ndarray:
+        """Colours of the ground pixels `px`: textured asphalt with paint, sidewalk tiles, grass and dirt."""
         w = self.weather
         s, d, surface, t = ground.s[px], ground.d[px], ground.surface[px], ground.t[px]
         x = origin[0] + t * dirs[px, 0]
@@ -338,7 +348,10 @@ class Renderer:
         )
         return base * (w.ambient + w.sun_strength * max(self.sun[2], 0.0))
 
-    def _shade_prims(self, prims: PrimSet, idx: np.ndarray, origin, dirs, t, rng_m) -> np.ndarray:
+    def _shade_prims(
+        self, prims: PrimSet, idx: np.ndarray, origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, rng_m: np.ndarray
+    ) -> np.ndarray:
+        """Colours of primitive hits: base colour and material pattern, sun and sky light."""
         w = self.weather
         m = prims.world_to_unit()[idx]
         p_world = origin + t[:, None] * dirs

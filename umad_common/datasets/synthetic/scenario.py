@@ -57,6 +57,18 @@ class Anomaly:
 
 
 @dataclass
+class MovingCar:
+    """A car driving along a lane at constant speed (negative speed: against the road's direction)."""
+
+    parts: list
+    inst: int
+    s_start: float
+    speed: float
+    d: float
+    yaw_offset: float  # pi for oncoming cars
+
+
+@dataclass
 class SyntheticFrame:
     camera: CameraFrame
     lidar: np.ndarray  # (N, 4) float32 (x, y_left, z, intensity) = AnoVox's (x, -y, z, i)
@@ -170,8 +182,8 @@ class SyntheticScenario:
         sun_azimuth = rng.uniform(-np.pi, np.pi)
         self.renderer = Renderer(self.road, self.weather, self.camera, self.lidar, seed, sun_azimuth)
 
-    def _plan_movers(self, rng: np.random.Generator, first_inst: int, cruise: float, s_end: float) -> list[tuple]:
-        """Oncoming cars (and a lead car in normal drives) as (parts, inst, s_start, speed, d, yaw_offset)."""
+    def _plan_movers(self, rng: np.random.Generator, first_inst: int, cruise: float, s_end: float) -> list[MovingCar]:
+        """Oncoming cars, and in normal drives sometimes a faster lead car in the ego lane."""
         movers = []
         s_lo, s_hi = 25.0, s_end + 160.0
         if self.anomaly is not None and self.anomaly.d > 0:
@@ -180,25 +192,28 @@ class SyntheticScenario:
             if s_hi <= s_lo:
                 break
             movers.append(
-                (car_parts(rng), first_inst + k, rng.uniform(s_lo, s_hi), -rng.uniform(6, 11), ONCOMING_LANE_D, np.pi)
+                MovingCar(
+                    car_parts(rng), first_inst + k, rng.uniform(s_lo, s_hi), -rng.uniform(6, 11), ONCOMING_LANE_D, np.pi
+                )
             )
         if self.anomaly is None and rng.random() < 0.5:
             movers.append(
-                (car_parts(rng), first_inst + len(movers), rng.uniform(20, 35), cruise + 1.5, EGO_LANE_D, 0.0)
+                MovingCar(car_parts(rng), first_inst + len(movers), rng.uniform(20, 35), cruise + 1.5, EGO_LANE_D, 0.0)
             )
         return movers
 
     def pose(self, i: int) -> tuple[float, float, float]:
+        """Ego (camera) pose at frame i: world x, y and heading."""
         x, y, heading = self.road.to_world(np.array(self.track.s[i]), np.array(EGO_LANE_D))
         return float(x), float(y), float(heading)
 
     def prims_at(self, i: int) -> PrimSet:
         """Static world, moving cars at frame i, and the anomaly."""
         sets = [self.static, self.anomaly_prims]
-        for parts, inst, s0, speed, d, yaw_offset in self.movers:
-            s = s0 + speed * i * FRAME_DT
-            x, y, heading = self.road.to_world(np.array(s), np.array(d))
-            sets.append(PrimSet.from_parts(parts, float(x), float(y), float(heading) + yaw_offset, inst))
+        for car in self.movers:
+            s = car.s_start + car.speed * i * FRAME_DT
+            x, y, heading = self.road.to_world(np.array(s), np.array(car.d))
+            sets.append(PrimSet.from_parts(car.parts, float(x), float(y), float(heading) + car.yaw_offset, car.inst))
         return PrimSet.concat(sets)
 
     def route_map(self, i: int) -> np.ndarray:
@@ -217,6 +232,7 @@ class SyntheticScenario:
         return route
 
     def render(self, i: int, with_lidar: bool = True) -> SyntheticFrame:
+        """All sensors and the ego state of frame i."""
         pose = self.pose(i)
         prims = self.prims_at(i)
         camera = self.renderer.render_camera(pose, prims, i)
