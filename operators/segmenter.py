@@ -50,16 +50,16 @@ class SegmenterParams(BaseModel):
         "instance (road, sidewalk, sky ...), so the masks tile the image",
     )
     gt_stuff_min_area: int = Field(default=16, ge=1, description="gt: stuff regions smaller than this get no mask")
-    felzenszwalb_scale: float = Field(default=100.0, gt=0, description="felzenszwalb: larger -> fewer, larger segments")
+    felzenszwalb_scale: float = Field(default=300.0, gt=0, description="felzenszwalb: larger -> fewer, larger segments")
     felzenszwalb_sigma: float = Field(default=0.3, ge=0, description="felzenszwalb: Gaussian pre-smoothing (px)")
     felzenszwalb_min_size: int = Field(default=15, ge=1, description="felzenszwalb: smallest segment (px)")
-    slic_n_segments: int = Field(default=100, ge=1, description="slic: approximate number of superpixels")
+    slic_n_segments: int = Field(default=200, ge=1, description="slic: approximate number of superpixels")
     slic_compactness: float = Field(
         default=20.0, gt=0, description="slic: colour vs position balance; larger -> squarer superpixels"
     )
     slic_sigma: float = Field(default=1.0, ge=0, description="slic: Gaussian pre-smoothing (px)")
     kmeans_clusters: int = Field(default=32, ge=2, description="kmeans: number of feature clusters")
-    kmeans_sigma: float = Field(default=1.0, ge=0, description="kmeans: Gaussian pre-smoothing of the image (px)")
+    kmeans_sigma: float = Field(default=0.5, ge=0, description="kmeans: Gaussian pre-smoothing of the image (px)")
     kmeans_position_weight: float = Field(
         default=0.25, ge=0, description="kmeans: weight of the (y, x) position features against Lab colour"
     )

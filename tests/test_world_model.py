@@ -78,7 +78,7 @@ def test_observe_and_imagine_shapes():
 
 
 def test_config_rejects_image_size_not_divisible():
-    with pytest.raises(ValueError, match="divisible by 16"):
+    with pytest.raises(ValueError, match="must be divisible by"):
         WorldModelConfig(image_height=100)
 
 

@@ -12,7 +12,8 @@ Per method, over every frame of the given drives, at the world model's size:
   (masks weighted by their normal pixels): how much averaging mean refinement gives the speckle of
   normal structure. Finer masks raise `coverage` trivially (one-pixel masks reach 100 %) but leave
   the speckle as it was; a good segmenter has both figures high.
-- `masks_per_frame` and `ms_per_frame` (the segmenter operator's `process`, one thread).
+- `masks_per_frame`, `ms_per_frame` (wall time of the segmenter operator's `process`, one thread)
+  and `cpu_ms_per_frame` (its process CPU time: steadier than wall time on a shared machine).
 - `refined_ap` / `pixel_ap`, when the frames carry a fused difference map (`fused_maps_along`
   runs a world model over the drives): pooled pixel AP after `mean` refinement with the masks
   (uncovered pixels keep their score), and of the fused map itself. This is what the masks are for.
@@ -63,6 +64,7 @@ class SegmenterQuality:
     normal_segment_px: float
     masks_per_frame: float
     ms_per_frame: float
+    cpu_ms_per_frame: float
     refined_ap: float | None = None
     pixel_ap: float | None = None
 
@@ -71,7 +73,7 @@ class SegmenterQuality:
         return ap + (
             f"coverage {self.coverage:6.1%}  best IoU {self.best_iou:5.3f}  normal seg px {self.normal_segment_px:7.0f}  "
             f"masks/frame {self.masks_per_frame:6.1f}  "
-            f"{self.ms_per_frame:7.1f} ms/frame  {self.params}"
+            f"{self.ms_per_frame:6.1f} ms/frame ({self.cpu_ms_per_frame:5.1f} CPU)  {self.params}"
         )
 
 
@@ -156,9 +158,12 @@ def operator_frame(sample: LabelledFrame) -> Frame:
 def frame_quality(
     masks: np.ndarray, anomaly: np.ndarray, instance: np.ndarray | None = None
 ) -> tuple[int, int, list[float], float, float]:
-    """(anomaly pixels, those covered by a >= 50 % anomaly mask, best IoU per anomaly object,
-    sum over masks of normal pixels x area, sum of normal pixels in masks) of one frame. Arrays already at the masks' size; an object is the anomaly pixels of one instance id when
-    `instance` is given (a thin-legged animal stays one object), else a 4-connected anomaly region."""
+    """One frame's raw counts: (anomaly pixels, those covered by a >= 50 % anomaly mask, best IoU per
+    anomaly object, sum over masks of normal pixels x mask area, sum over masks of normal pixels).
+
+    Arrays are already at the masks' size. An object is the anomaly pixels of one instance id when
+    `instance` is given (a thin-legged animal stays one object), else a 4-connected anomaly region.
+    """
     is_anomaly = anomaly == 1
     valid = (anomaly != IGNORE).reshape(-1)
     total = int(is_anomaly.sum())
@@ -192,14 +197,15 @@ def measure_segmenter(params: dict, frames: Iterable[LabelledFrame]) -> Segmente
 
     segmenter = Segmenter(params)
     count = total = covered = masks_total = 0
-    seconds = normal_area = normal_pixels = 0.0
+    seconds = cpu_seconds = normal_area = normal_pixels = 0.0
     refined_metrics, pixel_metrics = PixelMetrics(), PixelMetrics()
     best_ious: list[float] = []
     for sample in frames:
         frame = operator_frame(sample)
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         masks = segmenter.process(frame)["masks"].arrays["masks"]
         seconds += time.perf_counter() - start
+        cpu_seconds += time.process_time() - cpu_start
         anomaly = resize_nearest(sample.anomaly, masks.shape[1:])
         instance = None if sample.instance is None else resize_nearest(sample.instance, masks.shape[1:])
         frame_total, frame_covered, frame_best, frame_normal_area, frame_normal = frame_quality(
@@ -228,6 +234,7 @@ def measure_segmenter(params: dict, frames: Iterable[LabelledFrame]) -> Segmente
         normal_segment_px=normal_area / max(normal_pixels, 1.0),
         masks_per_frame=masks_total / count,
         ms_per_frame=1000.0 * seconds / count,
+        cpu_ms_per_frame=1000.0 * cpu_seconds / count,
         refined_ap=float(refined_metrics.compute()["AP"]) if refined_metrics.n_anomaly else None,
         pixel_ap=float(pixel_metrics.compute()["AP"]) if pixel_metrics.n_anomaly else None,
     )

@@ -18,9 +18,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", type=Path, required=True, help="output path without suffix, e.g. umad_common/assets/world_model"
     )
-    parser.add_argument("--epochs", type=int, default=20, help="total epochs (with --resume: up to this many)")
+    parser.add_argument("--epochs", type=int, default=16, help="total epochs (with --resume: up to this many)")
     parser.add_argument("--seed", type=int, default=0, help="seed of initialisation, window order and latent noise")
-    parser.add_argument("--resume", action="store_true", help="continue from MODEL.train.pt")
+    parser.add_argument(
+        "--resume", action="store_true", help="continue from MODEL.train.pt with the configs stored in it"
+    )
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads (results depend on it)")
     parser.add_argument("--batch-size", type=int, default=None, help="windows per step (default from TrainConfig)")
     parser.add_argument("--sequence-length", type=int, default=None, help="model steps per window (default 12)")

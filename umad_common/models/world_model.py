@@ -39,8 +39,8 @@ from torch import nn
 class WorldModelConfig:
     image_height: int = 128  # camera resized (no crop) to image_height x image_width
     image_width: int = 192
-    image_channels: tuple[int, ...] = (16, 32, 64, 64)  # conv widths, one stride-2 stage each; the
-    #   latent grid is image size / 2**len(image_channels) (8 x 12 by default)
+    image_channels: tuple[int, ...] = (16, 32, 64)  # conv widths, one stride-2 stage each; the
+    #   latent grid is image size / 2**len(image_channels) (16 x 24 by default)
     lidar_rows: int = 64  # range image rows = lidar channels
     lidar_width: int = 128  # range image columns (360 degrees of azimuth)
     lidar_fov_up: float = 15.0  # degrees above the horizon covered by the top row
@@ -54,7 +54,7 @@ class WorldModelConfig:
     speed_scale: float = 5.0  # speed input = speed_mps / speed_scale
     deter_dim: int = 256  # GRU state h (vector): the memory of the drive so far
     stoch_channels: int = 4  # Gaussian latent z, stoch_channels x grid: the only per-frame path from the image
-    context_channels: int = 16  # h projected onto the latent grid for the prior, posterior and decoder
+    context_channels: int = 8  # h projected onto the latent grid for the prior, posterior and decoder
     side_channels: int = 16  # lidar + route + speed embedding, broadcast onto the latent grid
     hidden_dim: int = 256  # width of the transition MLP (and channels of the prior / posterior convs / 4)
     min_std: float = 0.1  # floor of the latent standard deviation

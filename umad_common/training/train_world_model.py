@@ -198,7 +198,7 @@ def psnr(mse: float) -> float:
 def train_world_model(
     data: Path,
     out: Path,
-    epochs: int = 20,
+    epochs: int = 16,
     seed: int = 0,
     resume: bool = False,
     threads: int = 2,
