@@ -8,13 +8,12 @@ frames may go to any replica in any order.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from pydantic import BaseModel, ConfigDict, Field
 
+from umad_common import ASSETS
 from umad_common.operator import Frame, Input, Operator, Output
 
-SHIPPED_WEIGHTS = Path(__file__).resolve().parent.parent / "umad_common" / "assets" / "mnad.safetensors"
+SHIPPED_WEIGHTS = ASSETS / "mnad.safetensors"
 
 
 class MnadParams(BaseModel):

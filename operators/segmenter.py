@@ -10,7 +10,8 @@
   `python: .venv-sam/bin/python`).
 
 Default `felzenszwalb`: on the built-in anomalous drives it isolates anomalies best of the
-unsupervised built-ins at a few ms per frame (figures in `umad_common/segmentation_quality.py`).
+unsupervised built-ins at a few ms per frame (`umad bench segmenters`; the figures are defined in
+`umad_common/benchmarks/segmentation_quality.py`).
 Masks travel as one (K, h, w) bool array, so SAM's overlapping masks keep their overlaps.
 """
 

@@ -27,7 +27,9 @@ def umad_env() -> dict[str, str]:
 
 
 def run_umad(*args: str, timeout: float = 120, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([*UMAD, *args], capture_output=True, text=True, timeout=timeout, env=umad_env(), cwd=REPO, **kw)
+    return subprocess.run(
+        [*UMAD, *args], capture_output=True, text=True, timeout=timeout, env=umad_env(), cwd=REPO, **kw
+    )
 
 
 def start_umad(*args: str) -> subprocess.Popen:

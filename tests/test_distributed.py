@@ -54,8 +54,24 @@ def netns():
 
 
 def remote_worker(ns: str, graph: Path, op: str, replica: int, connect: str) -> subprocess.Popen:
-    cmd = ["ip", "netns", "exec", ns, sys.executable, "-m", "umad_common.cli", "op", "run", op,
-           "--graph", str(graph), "--replica", str(replica), "--connect", connect]
+    cmd = [
+        "ip",
+        "netns",
+        "exec",
+        ns,
+        sys.executable,
+        "-m",
+        "umad_common.cli",
+        "op",
+        "run",
+        op,
+        "--graph",
+        str(graph),
+        "--replica",
+        str(replica),
+        "--connect",
+        connect,
+    ]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=umad_env(), cwd=REPO)
 
 
@@ -90,12 +106,42 @@ def make_certificates(folder: Path, host_ip: str) -> None:
     def openssl(*args):
         subprocess.run(["openssl", *args], check=True, capture_output=True, cwd=folder)
 
-    openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "1",
-            "-subj", "/CN=umad-test-ca")
+    openssl(
+        "req",
+        "-x509",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-days",
+        "1",
+        "-subj",
+        "/CN=umad-test-ca",
+    )
     openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", "hub.key", "-out", "hub.csr", "-subj", "/CN=localhost")
-    (folder / "ext.cnf").write_text(f"subjectAltName=DNS:localhost,IP:127.0.0.1,IP:{host_ip}\nbasicConstraints=CA:FALSE\n")
-    openssl("x509", "-req", "-in", "hub.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial", "-out", "hub.pem",
-            "-days", "1", "-extfile", "ext.cnf")
+    (folder / "ext.cnf").write_text(
+        f"subjectAltName=DNS:localhost,IP:127.0.0.1,IP:{host_ip}\nbasicConstraints=CA:FALSE\n"
+    )
+    openssl(
+        "x509",
+        "-req",
+        "-in",
+        "hub.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca.key",
+        "-CAcreateserial",
+        "-out",
+        "hub.pem",
+        "-days",
+        "1",
+        "-extfile",
+        "ext.cnf",
+    )
 
 
 def test_hub_requiring_tls_serves_a_remote_worker_with_the_right_ca(tmp_path, netns):

@@ -30,8 +30,15 @@ def malformed_payloads(n: int, seed: int = 0) -> list[bytes]:
     good = encode(Message("fuzz", 0, arrays={"rgb": np.zeros((4, 4, 3), np.uint8)}))
 
     def header(**kw):
-        obj = {"v": 1, "run": "fuzz", "seq": int(rng.integers(0, 1000)), "stamp_ns": 0, "producer": "fuzz", "meta": {},
-               "arrays": {"rgb": {"dtype": "|u1", "shape": [4, 4, 3], "data": b"\0" * 48}}}
+        obj = {
+            "v": 1,
+            "run": "fuzz",
+            "seq": int(rng.integers(0, 1000)),
+            "stamp_ns": 0,
+            "producer": "fuzz",
+            "meta": {},
+            "arrays": {"rgb": {"dtype": "|u1", "shape": [4, 4, 3], "data": b"\0" * 48}},
+        }
         obj.update(kw)
         return msgpack.packb(obj, use_bin_type=True)
 
@@ -59,20 +66,31 @@ def test_ten_thousand_malformed_messages_crash_nothing_and_are_all_counted(tmp_p
     data.update(hub=hub, base_dir=str(REPO))
     for op in data["operators"]:
         if op["kind"] == "replayer":
-            op["params"].update(source=str(tmp_path / "data" / "anomalous"), window=2)
+            # Realtime pacing at 0.3 Hz keeps the 12-frame stream going for 40 s whatever the
+            # machine's speed, so every operator is still up while the garbage arrives.
+            op["params"].update(source=str(tmp_path / "data" / "anomalous"), pacing="realtime", rate_hz=0.3)
     graph_file = tmp_path / "graph.yaml"
     graph_file.write_text(yaml.safe_dump(data, sort_keys=False))
     graph = load_graph(graph_file)
     keys = Keys(graph.name)
-    targets = sorted({f"{op}/{out}" for spec in graph.spec.operators for port in spec.inputs
-                      for src in spec.sources_of(port) for op, out in graph.producers(src)})
+    targets = sorted(
+        {
+            f"{op}/{out}"
+            for spec in graph.spec.operators
+            for port in spec.inputs
+            for src in spec.sources_of(port)
+            for op, out in graph.producers(src)
+        }
+    )
 
     stats: dict[str, dict] = {}
     proc = start_umad("launch", str(graph_file))
     session = open_client(hub)
     try:
-        sub = session.declare_subscriber(f"{keys.root}/_stats/**",
-                                         lambda s: stats.update({str(s.key_expr).split("/_stats/")[1]: json.loads(s.payload.to_bytes())}))
+        sub = session.declare_subscriber(
+            f"{keys.root}/_stats/**",
+            lambda s: stats.update({str(s.key_expr).split("/_stats/")[1]: json.loads(s.payload.to_bytes())}),
+        )
         deadline = time.monotonic() + 240
         consumers = [s.id for s in graph.spec.operators if s.inputs]
         while time.monotonic() < deadline and not all(f"{op}/r0" in stats for op in consumers):
@@ -80,18 +98,27 @@ def test_ten_thousand_malformed_messages_crash_nothing_and_are_all_counted(tmp_p
         assert all(f"{op}/r0" in stats for op in consumers), sorted(stats)
         payloads = malformed_payloads(N_PAYLOADS)
         sent: dict[str, int] = {}
-        pubs = {t: session.declare_publisher(keys.data(*t.split("/")), congestion_control=zenoh.CongestionControl.BLOCK)
-                for t in targets}
+        pubs = {
+            t: session.declare_publisher(keys.data(*t.split("/")), congestion_control=zenoh.CongestionControl.BLOCK)
+            for t in targets
+        }
         for i, payload in enumerate(payloads):
             target = targets[i % len(targets)]
             pubs[target].put(payload)
             sent[target] = sent.get(target, 0) + 1
         expected = {}
         for spec in graph.spec.operators:
-            wired = {f"{op}/{out}" for port in spec.inputs for src in spec.sources_of(port) for op, out in graph.producers(src)}
+            wired = {
+                f"{op}/{out}"
+                for port in spec.inputs
+                for src in spec.sources_of(port)
+                for op, out in graph.producers(src)
+            }
             expected[spec.id] = sum(n for t, n in sent.items() if t in wired)
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and any(stats[f"{op}/r0"]["bad_messages"] < n for op, n in expected.items() if n):
+        while time.monotonic() < deadline and any(
+            stats[f"{op}/r0"]["bad_messages"] < n for op, n in expected.items() if n
+        ):
             time.sleep(0.5)
         counted = {op: stats[f"{op}/r0"]["bad_messages"] for op, n in expected.items() if n}
         sub.undeclare()

@@ -15,10 +15,10 @@ import pytest
 import yaml
 import zenoh
 
+from replay.log import LogError, read_log
 from tests.conftest import run_umad, start_umad
 from umad_common.bus import open_client
 from umad_common.messages import decode
-from replay.log import LogError, read_log
 
 pytestmark = pytest.mark.slow
 
@@ -212,7 +212,9 @@ def test_hub_restart_is_survived_by_reconnecting_clients(tmp_path, hub_endpoint)
     deadline = time.monotonic() + 60
     hub_pid = None
     while hub_pid is None and time.monotonic() < deadline:
-        out = subprocess.run(["pgrep", "-f", "--", f"umad_common.hub --listen {hub_endpoint}"], capture_output=True, text=True)
+        out = subprocess.run(
+            ["pgrep", "-f", "--", f"umad_common.hub --listen {hub_endpoint}"], capture_output=True, text=True
+        )
         if out.stdout.strip() and (tmp_path / "sink.jsonl").exists() and len(sink_lines(tmp_path)) > 10:
             hub_pid = int(out.stdout.split()[0])
         time.sleep(0.05)
@@ -240,8 +242,9 @@ def test_hot_swap_start_stop_and_set_take_effect_on_later_frames(tmp_path, hub_e
         raise AssertionError(f"timed out waiting for {what}")
 
     wait_for(lambda lines: len(lines) > 20, "first frames")
-    data["operators"].insert(3, {"id": "quadruple", "uses": "tests.toy_ops:Scale", "inputs": {"x": "source/value"},
-                                 "params": {"factor": 4}})
+    data["operators"].insert(
+        3, {"id": "quadruple", "uses": "tests.toy_ops:Scale", "inputs": {"x": "source/value"}, "params": {"factor": 4}}
+    )
     graph.write_text(yaml.safe_dump(data, sort_keys=False))
     assert run_umad("op", "start", "quadruple", "--graph", str(graph)).returncode == 0
     wait_for(lambda lines: any("quadruple" in x.get("producers", []) for x in lines), "quadruple to join")
@@ -249,7 +252,10 @@ def test_hot_swap_start_stop_and_set_take_effect_on_later_frames(tmp_path, hub_e
     wait_for(lambda lines: any(x.get("total") == x["seq"] * 13 and x["seq"] for x in lines if "seq" in x), "factor 5")
     assert run_umad("op", "stop", "quadruple", "--graph", str(graph)).returncode == 0
     n_before_stop = len(sink_lines(tmp_path))
-    wait_for(lambda lines: len(lines) > n_before_stop + 20 and lines[-1]["producers"] == ["double", "triple"], "quadruple to leave")
+    wait_for(
+        lambda lines: len(lines) > n_before_stop + 20 and lines[-1]["producers"] == ["double", "triple"],
+        "quadruple to leave",
+    )
     proc.send_signal(signal.SIGINT)
     out, _ = proc.communicate(timeout=60)
 
@@ -261,7 +267,9 @@ def test_hot_swap_start_stop_and_set_take_effect_on_later_frames(tmp_path, hub_e
     assert (10.0, ("double", "quadruple", "triple")) in seen
     assert (13.0, ("double", "quadruple", "triple")) in seen
     assert seen[-1] == (9.0, ("double", "triple"))
-    order = [seen.index(x) for x in [(10.0, ("double", "quadruple", "triple")), (13.0, ("double", "quadruple", "triple"))]]
+    order = [
+        seen.index(x) for x in [(10.0, ("double", "quadruple", "triple")), (13.0, ("double", "quadruple", "triple"))]
+    ]
     assert order == sorted(order)
     assert "parameters changed: {'factor': 5}" in out
 
@@ -272,10 +280,23 @@ def test_restarted_stateful_operator_rebuilds_its_state_and_results_match(tmp_pa
         "name": "stateful",
         "hub": hub_endpoint,
         "operators": [
-            {"id": "source", "uses": "tests.toy_ops:RewindableCounterSource",
-             "params": {"frames": frames, "runs": 2, "window": 4, "ack_timeout_s": 2.0}},
-            {"id": "cumsum", "uses": "tests.toy_ops:RunningSum", "inputs": {"x": "source/value"}, "params": {"delay_s": 0.03}},
-            {"id": "log", "uses": "tests.toy_ops:Logger", "inputs": {"x": "cumsum/y"}, "params": {"log": str(tmp_path / "log.jsonl")}},
+            {
+                "id": "source",
+                "uses": "tests.toy_ops:RewindableCounterSource",
+                "params": {"frames": frames, "runs": 2, "window": 4, "ack_timeout_s": 2.0},
+            },
+            {
+                "id": "cumsum",
+                "uses": "tests.toy_ops:RunningSum",
+                "inputs": {"x": "source/value"},
+                "params": {"delay_s": 0.03},
+            },
+            {
+                "id": "log",
+                "uses": "tests.toy_ops:Logger",
+                "inputs": {"x": "cumsum/y"},
+                "params": {"log": str(tmp_path / "log.jsonl")},
+            },
         ],
     }
     graph = tmp_path / "graph.yaml"

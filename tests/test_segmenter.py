@@ -174,7 +174,7 @@ def test_kmeans_feature_net_file_is_checked_at_construction(tmp_path):
 
 
 def test_quality_counts_anomaly_pixels_in_masks_at_least_half_anomaly():
-    from umad_common.segmentation_quality import frame_quality
+    from umad_common.benchmarks.segmentation_quality import frame_quality
 
     anomaly = np.zeros((4, 6), np.uint8)
     anomaly[0, :3] = 1  # object A: 3 px
@@ -194,7 +194,7 @@ def test_quality_counts_anomaly_pixels_in_masks_at_least_half_anomaly():
 
 
 def test_measure_segmenter_reports_refined_ap_when_frames_carry_a_fused_map():
-    from umad_common.segmentation_quality import LabelledFrame, measure_segmenter
+    from umad_common.benchmarks.segmentation_quality import LabelledFrame, measure_segmenter
 
     rng = np.random.default_rng(5)
     frames = []

@@ -65,7 +65,9 @@ class JoinSink(Operator):
     def process(self, frame):
         a = frame.inputs["a"].arrays["x"]
         total = a + sum(m.arrays["x"] for m in frame.many["b"].values())
-        self._write({"run": frame.run, "seq": frame.seq, "total": float(total[0]), "producers": sorted(frame.many["b"])})
+        self._write(
+            {"run": frame.run, "seq": frame.seq, "total": float(total[0]), "producers": sorted(frame.many["b"])}
+        )
         return {"total": Output({"x": total})}
 
     def end_run(self, run):
@@ -132,5 +134,8 @@ class Logger(Operator):
 
     def process(self, frame):
         with Path(self.params.log).open("a") as f:
-            f.write(json.dumps({"run": frame.run, "seq": frame.seq, "value": float(frame.inputs["x"].arrays["x"][0])}) + "\n")
+            f.write(
+                json.dumps({"run": frame.run, "seq": frame.seq, "value": float(frame.inputs["x"].arrays["x"][0])})
+                + "\n"
+            )
         return {}

@@ -1,0 +1,5 @@
+"""UMAD's shared code: messages, bus, operator runtime, graph, launcher, datasets, models, metrics."""
+
+from pathlib import Path
+
+ASSETS = Path(__file__).resolve().parent / "assets"  # the shipped weights and calibration

@@ -23,6 +23,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("train", "world-model"): ("umad_common.commands.train_world_model", "train the world model on normal drives"),
     ("train", "features"): ("umad_common.commands.train_features", "train the label-free perceptual feature net"),
     ("train", "mnad"): ("umad_common.commands.train_mnad", "train the MNAD baseline"),
+    ("test", "world-model"): ("umad_common.commands.test_world_model", "held-out PSNR and anomaly/road error ratio"),
     ("calibrate",): ("umad_common.commands.calibrate", "fit per-metric normalisation on normal frames"),
     ("eval",): ("umad_common.commands.evaluate", "run the full UMAD evaluation and write the report"),
     ("sweep",): ("umad_common.commands.sweep", "compute the ablation table from a recorded log"),
@@ -44,11 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
                 groups[words[0]] = group.add_subparsers(dest="subverb", required=True, metavar="WHAT")
             sub = groups[words[0]].add_parser(words[1], help=help_text, description=help_text)
         sub.set_defaults(_module=module_name, _words=words)
-        try:  # DEV-ONLY: tolerate verbs whose module is not written yet
-            importlib.import_module(module_name).add_arguments(sub)
-        except ModuleNotFoundError as exc:
-            if exc.name != module_name:
-                raise
+        importlib.import_module(module_name).add_arguments(sub)
     return parser
 
 

@@ -57,6 +57,7 @@ class OperatorSpec(BaseModel):
         """The wiring patterns of one input port, as a list."""
         value = self.inputs[port]
         return [value] if isinstance(value, str) else list(value)
+
     params: dict[str, Any] = Field(default_factory=dict)
     replicas: int = Field(1, description="processes sharing this operator's frames")
     python: str | None = Field(None, description="interpreter of another environment to run this operator in")
@@ -67,7 +68,9 @@ class GraphSpec(BaseModel):
     name: str = Field("umad", pattern=r"^[A-Za-z0-9_\-]+$")
     hub: str = DEFAULT_HUB
     tls: TlsSpec | None = None
-    base_dir: str | None = Field(None, description="folder that relative paths in params resolve against (default: the graph file's)")
+    base_dir: str | None = Field(
+        None, description="folder that relative paths in params resolve against (default: the graph file's)"
+    )
     operators: list[OperatorSpec]
 
 
@@ -117,7 +120,9 @@ class Graph:
         return [
             spec.id
             for spec in self.spec.operators
-            if any(op == op_id for port in spec.inputs for src in spec.sources_of(port) for op, _ in self.producers(src))
+            if any(
+                op == op_id for port in spec.inputs for src in spec.sources_of(port) for op, _ in self.producers(src)
+            )
         ]
 
     def sources(self) -> list[str]:
@@ -125,7 +130,9 @@ class Graph:
 
     def sinks(self) -> list[str]:
         """Operators whose outputs nobody consumes: they acknowledge frames end to end."""
-        return [s.id for s in self.spec.operators if not issubclass(self.classes[s.id], Source) and not self.consumers(s.id)]
+        return [
+            s.id for s in self.spec.operators if not issubclass(self.classes[s.id], Source) and not self.consumers(s.id)
+        ]
 
     def with_params(self, overrides: dict[str, dict[str, Any]]) -> Graph:
         """A copy with `{op_id: {param: value}}` merged in, validated again."""
@@ -215,7 +222,9 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
             problems.append(f"operator {op.id!r}: kind {cls.kind!r} processes frames in order and cannot have replicas")
         ports = {p.name: p for p in cls.inputs}
         for name in sorted(set(op.inputs) - set(ports)):
-            problems.append(f"operator {op.id!r}: unknown input port {name!r}; {cls.kind or cls.__name__} has {sorted(ports)}")
+            problems.append(
+                f"operator {op.id!r}: unknown input port {name!r}; {cls.kind or cls.__name__} has {sorted(ports)}"
+            )
         for name in sorted(set(ports) - set(op.inputs)):
             problems.append(f"operator {op.id!r}: input port {name!r} is not wired")
         for name in op.inputs:
@@ -230,7 +239,9 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
                     continue
                 matches = [m for m in graph.producers(source) if m[0] in classes]
                 if not matches:
-                    problems.append(f"operator {op.id!r}: input {name!r} = {source!r} names an output no operator declares")
+                    problems.append(
+                        f"operator {op.id!r}: input {name!r} = {source!r} names an output no operator declares"
+                    )
                 elif len(matches) > 1 and not ports[name].many:
                     problems.append(
                         f"operator {op.id!r}: input {name!r} = {source!r} matches {len(matches)} outputs but the port takes one"
@@ -275,7 +286,9 @@ def _describe(err: dict, data: dict) -> str:
     loc = list(err["loc"])
     if len(loc) >= 2 and loc[0] == "operators" and isinstance(loc[1], int):
         ops = data.get("operators") or []
-        op_id = ops[loc[1]].get("id", f"#{loc[1]}") if loc[1] < len(ops) and isinstance(ops[loc[1]], dict) else f"#{loc[1]}"
+        op_id = (
+            ops[loc[1]].get("id", f"#{loc[1]}") if loc[1] < len(ops) and isinstance(ops[loc[1]], dict) else f"#{loc[1]}"
+        )
         field = ".".join(str(x) for x in loc[2:]) or "entry"
         return f"operator {op_id!r}: key {field!r}: {err['msg']}"
     return f"key {'.'.join(str(x) for x in loc)!r}: {err['msg']}"

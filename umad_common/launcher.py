@@ -108,8 +108,19 @@ class Launcher:
         python = spec.python or sys.executable
         if spec.python and not Path(spec.python).is_absolute():
             python = str(graph.base_dir / spec.python)
-        cmd = [python, "-m", "umad_common.runtime", "--graph", str(graph_file), "--op", spec.id,
-               "--replica", str(index), "--connect", self.hub]
+        cmd = [
+            python,
+            "-m",
+            "umad_common.runtime",
+            "--graph",
+            str(graph_file),
+            "--op",
+            spec.id,
+            "--replica",
+            str(index),
+            "--connect",
+            self.hub,
+        ]
         for text in self.sets:
             if text.split(".", 1)[0] == spec.id:
                 cmd += ["--set", text]
@@ -129,8 +140,13 @@ class Launcher:
     def _spawn(self, rep: Replica) -> None:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         rep.proc = subprocess.Popen(
-            rep.command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
-            start_new_session=True, env=env,
+            rep.command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            bufsize=1,
+            start_new_session=True,
+            env=env,
         )
         reader = threading.Thread(target=self._pump, args=(rep, rep.proc), daemon=True)
         reader.start()
@@ -199,6 +215,7 @@ class Launcher:
 
     def run(self) -> int:
         """Run the graph until its sources finish, an operator fails for good, or SIGINT/SIGTERM."""
+
         def on_signal(signum, _frame):
             log.info("stopping the graph (%s)", signal.Signals(signum).name)
             self._stop.set()
@@ -217,8 +234,12 @@ class Launcher:
                 subscribers.append(hub.declare_subscriber(f"{keys.root}/_stats/**", self._on_stats))
                 subscribers.append(hub.declare_subscriber(keys.control("_launcher"), self._on_control))
                 if self.record:
-                    recorder = McapRecorder(self.record, self.graph_file.read_text(), {"base_dir": str(self.graph.base_dir)})
-                    subscribers.append(hub.declare_subscriber(f"{keys.root}/**", lambda s: self._on_record(recorder, s)))
+                    recorder = McapRecorder(
+                        self.record, self.graph_file.read_text(), {"base_dir": str(self.graph.base_dir)}
+                    )
+                    subscribers.append(
+                        hub.declare_subscriber(f"{keys.root}/**", lambda s: self._on_record(recorder, s))
+                    )
             for rep in self.replicas:
                 self._spawn(rep)
             code = self._supervise()
@@ -323,6 +344,8 @@ class Launcher:
             s = self.stats[name]
             p50 = f"{s['p50_ms']:.1f}" if s.get("p50_ms") is not None else "-"
             p99 = f"{s['p99_ms']:.1f}" if s.get("p99_ms") is not None else "-"
-            lines.append(f"{name:<24}{s['frames_in']:>8}{s['frames_out']:>8}{s['errors']:>8}{s['bad_messages']:>6}{s['duplicates']:>6}{p50:>9}{p99:>9}")
+            lines.append(
+                f"{name:<24}{s['frames_in']:>8}{s['frames_out']:>8}{s['errors']:>8}{s['bad_messages']:>6}{s['duplicates']:>6}{p50:>9}{p99:>9}"
+            )
         with self._print_lock:
             print("\n".join(lines), flush=True)

@@ -22,9 +22,7 @@ VERSION = 1
 MAX_MESSAGE_BYTES = 256 * 1024 * 1024
 MAX_ARRAYS = 64
 MAX_NDIM = 6
-ALLOWED_DTYPES = frozenset(
-    ["|u1", "|i1", "|b1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"]
-)
+ALLOWED_DTYPES = frozenset(["|u1", "|i1", "|b1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8"])
 
 
 class MessageError(ValueError):
@@ -143,7 +141,9 @@ def _decode_array(name: Any, spec: Any) -> np.ndarray:
         or len(shape) > MAX_NDIM
         or not all(isinstance(d, int) and not isinstance(d, bool) and 0 <= d < 2**31 for d in shape)
     ):
-        raise MessageError(f"array '{name}': shape must be a list of at most {MAX_NDIM} non-negative ints, got {shape!r}")
+        raise MessageError(
+            f"array '{name}': shape must be a list of at most {MAX_NDIM} non-negative ints, got {shape!r}"
+        )
     if not isinstance(data, bytes):
         raise MessageError(f"array '{name}': data must be bytes, got {type(data).__name__}")
     dt = np.dtype(dtype)

@@ -177,7 +177,9 @@ def load_operator_class(kind: str | None = None, uses: str | None = None) -> typ
     """Find an operator class by built-in kind or by `package.module:ClassName` import path."""
     target = uses or BUILTIN_KINDS.get(kind or "")
     if target is None:
-        raise UnknownOperatorError(f"unknown operator kind {kind!r}; expected one of {sorted(BUILTIN_KINDS)} or `uses: pkg.module:Class`")
+        raise UnknownOperatorError(
+            f"unknown operator kind {kind!r}; expected one of {sorted(BUILTIN_KINDS)} or `uses: pkg.module:Class`"
+        )
     module_name, _, attr = target.partition(":")
     if not attr:
         raise UnknownOperatorError(f"import path {target!r} must look like `package.module:ClassName`")

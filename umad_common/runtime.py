@@ -134,7 +134,9 @@ class FrameJoiner:
             if len(entry.single) < len(self.single_ports):
                 continue
             complete = all(entry.many[p] and expected.get(p, set()) <= set(entry.many[p]) for p in self.many_ports)
-            late = deadline_s > 0 and now - entry.first_seen > deadline_s and all(entry.many[p] for p in self.many_ports)
+            late = (
+                deadline_s > 0 and now - entry.first_seen > deadline_s and all(entry.many[p] for p in self.many_ports)
+            )
             if complete or late:
                 del self.pending[key]
                 ready.append(
@@ -257,16 +259,16 @@ class OperatorRuntime:
         self.resend_requests: list[dict] = []  # sources: frames a restarted ordered operator needs again
         self._rewinds: dict[str, float] = {}  # ordered operators: run -> when frames were last re-requested
         self.publishers = {
-            out: session.declare_publisher(
-                self.keys.data(op_id, out), congestion_control=zenoh.CongestionControl.BLOCK
-            )
+            out: session.declare_publisher(self.keys.data(op_id, out), congestion_control=zenoh.CongestionControl.BLOCK)
             for out in self.cls.outputs
         }
         self.ack_pub = session.declare_publisher(self.keys.ack, congestion_control=zenoh.CongestionControl.BLOCK)
         self.stats_pub = session.declare_publisher(
             self.keys.stats(op_id, self.replica_id), congestion_control=zenoh.CongestionControl.DROP
         )
-        self.joiner = FrameJoiner([p.name for p in self.cls.inputs if not p.many], [p.name for p in self.cls.inputs if p.many])
+        self.joiner = FrameJoiner(
+            [p.name for p in self.cls.inputs if not p.many], [p.name for p in self.cls.inputs if p.many]
+        )
         self._subscribers: list[Any] = []
         self._last_stats = 0.0
 
@@ -285,9 +287,7 @@ class OperatorRuntime:
         self._subscribers.append(
             self.session.declare_subscriber(self.keys.control(self.op_id), lambda s: self.ctl_q.put(("ctl", s)))
         )
-        self._subscribers.append(
-            self.session.declare_subscriber(self.keys.left, lambda s: self.ctl_q.put(("left", s)))
-        )
+        self._subscribers.append(self.session.declare_subscriber(self.keys.left, lambda s: self.ctl_q.put(("left", s))))
         self._subscribers.append(
             self.session.liveliness().declare_subscriber(
                 self.keys.live_all, lambda s: self.ctl_q.put(("live", s)), history=True
@@ -317,7 +317,9 @@ class OperatorRuntime:
         for port in self.cls.inputs:
             if port.many:
                 expected[port.name] = {
-                    op for op in self.members.ops() if any(self._produces(op, src) for src in self.spec.sources_of(port.name))
+                    op
+                    for op in self.members.ops()
+                    if any(self._produces(op, src) for src in self.spec.sources_of(port.name))
                 }
         return expected
 
@@ -383,7 +385,9 @@ class OperatorRuntime:
         if now - self._rewinds.get(run, -1e9) < REWIND_RETRY_S:
             return
         self._rewinds[run] = now
-        self.log.warning("frame %s#%d arrived without the frames before it: asking the sources to resend them", run, seq)
+        self.log.warning(
+            "frame %s#%d arrived without the frames before it: asking the sources to resend them", run, seq
+        )
         for source in self.graph.sources():
             request = {"resend": {"run": run, "from": 0, "to": seq, "for": self.op_id}}
             self.session.put(self.keys.control(source), json.dumps(request))
@@ -398,7 +402,9 @@ class OperatorRuntime:
 
     # -- publishing ---------------------------------------------------------------------------------
 
-    def _encode_outputs(self, run: str, seq: int, stamp_ns: int, outputs: dict[str, Output], extra_meta: dict) -> list[tuple[str, bytes]]:
+    def _encode_outputs(
+        self, run: str, seq: int, stamp_ns: int, outputs: dict[str, Output], extra_meta: dict
+    ) -> list[tuple[str, bytes]]:
         payloads = []
         params = self.operator.params.model_dump(mode="json")
         for port, out in outputs.items():
@@ -438,7 +444,12 @@ class OperatorRuntime:
             token.undeclare()
             self._publish_stats(force=True)
         if not isinstance(self.operator, Source):
-            self.log.info("stopped after %d frames (%d errors, %d bad messages)", self.stats.frames_in, self.stats.errors, self.stats.bad_messages)
+            self.log.info(
+                "stopped after %d frames (%d errors, %d bad messages)",
+                self.stats.frames_in,
+                self.stats.errors,
+                self.stats.bad_messages,
+            )
 
     def _transform_loop(self) -> None:
         cache = OutputCache()
@@ -450,18 +461,26 @@ class OperatorRuntime:
         def finish(frame: Frame) -> None:
             key = (frame.run, frame.seq)
             self.stats.frames_in += 1
-            failed = [m for m in (*frame.inputs.values(), *(x for d in frame.many.values() for x in d.values())) if m.meta.get("error")]
+            failed = [
+                m
+                for m in (*frame.inputs.values(), *(x for d in frame.many.values() for x in d.values()))
+                if m.meta.get("error")
+            ]
             if failed:
                 payloads = self._markers(frame.run, frame.seq, frame.stamp_ns, {"error": failed[0].meta["error"]})
             else:
                 start = time.perf_counter()
                 try:
                     outputs = self.operator.process(frame)
-                    payloads = self._encode_outputs(frame.run, frame.seq, frame.stamp_ns, outputs, {"partial": True} if frame.partial else {})
+                    payloads = self._encode_outputs(
+                        frame.run, frame.seq, frame.stamp_ns, outputs, {"partial": True} if frame.partial else {}
+                    )
                 except Exception as exc:  # one bad frame must not stop the operator
                     self.stats.errors += 1
                     self.log.exception("frame %s failed: %s", frame.frame_id, exc)
-                    payloads = self._markers(frame.run, frame.seq, frame.stamp_ns, {"error": f"{self.op_id}: {type(exc).__name__}: {exc}"})
+                    payloads = self._markers(
+                        frame.run, frame.seq, frame.stamp_ns, {"error": f"{self.op_id}: {type(exc).__name__}: {exc}"}
+                    )
                 self.stats.latency.add(time.perf_counter() - start)
             cache.put(key, payloads)
             self._publish(payloads)
@@ -545,7 +564,13 @@ class OperatorRuntime:
 
 
 class SourceDriver:
-    """Paces a Source: window of un-acked frames, retransmission on timeout, end-of-run markers."""
+    """Paces a Source: window of un-acked frames, retransmission on timeout, end-of-run markers.
+
+    `lossless` pacing keeps at most `window` frames un-acked and re-sends a frame not acked in time.
+    `realtime` pacing publishes at `rate_hz` whatever the acks say and never re-sends (a late frame
+    of a live sensor is worthless), yet it still collects acks: a run's end-of-run marker goes out
+    only once its frames are acked or have timed out, so no sink closes a run before its last frame.
+    """
 
     def __init__(self, rt: OperatorRuntime):
         self.rt = rt
@@ -563,7 +588,9 @@ class SourceDriver:
 
     def run(self) -> None:
         rt = self.rt
-        rt._subscribers.append(rt.session.declare_subscriber(rt.keys.ack, lambda s: self.ack_q.put(s.payload.to_bytes())))
+        rt._subscribers.append(
+            rt.session.declare_subscriber(rt.keys.ack, lambda s: self.ack_q.put(s.payload.to_bytes()))
+        )
         self._wait_for_graph()
         sent = 0
         current: str | None = None
@@ -585,7 +612,8 @@ class SourceDriver:
             current = sf.run
             if self.realtime:
                 next_due += 1.0 / self.rate_hz
-                time.sleep(max(0.0, next_due - time.monotonic()))
+                while time.monotonic() < next_due and not rt.shutdown.is_set():
+                    self._service(min(0.01, max(0.0, next_due - time.monotonic())))
             else:
                 while len(self.inflight) >= self.window and not rt.shutdown.is_set():
                     self._service(0.01)
@@ -621,7 +649,7 @@ class SourceDriver:
     def _send(self, key: tuple[str, int], payloads: list[tuple[str, bytes]]) -> None:
         now = time.monotonic()
         self.rt._publish(payloads)
-        if not self.realtime and self.sinks:
+        if self.sinks:
             self.inflight[key] = (payloads, now, now)
 
     def _service(self, timeout: float) -> None:
@@ -657,7 +685,13 @@ class SourceDriver:
         now = time.monotonic()
         timeout_s = max(self.ack_timeout_s, 3 * (self.e2e.percentiles_ms()["p99_ms"] or 0) / 1e3)
         for key, (payloads, first, last) in list(self.inflight.items()):
-            if now - last > timeout_s:
+            if now - last > timeout_s and self.realtime:
+                rt.log.warning(
+                    "frame %s#%d not acked after %.1fs: given up (realtime pacing)", key[0], key[1], now - last
+                )
+                self.inflight.pop(key)
+                self.acks.pop(key, None)
+            elif now - last > timeout_s:
                 rt.log.warning("frame %s#%d not acked after %.1fs: re-sending", key[0], key[1], now - last)
                 rt.stats.retransmits += 1
                 for port, payload in payloads:
@@ -673,7 +707,9 @@ class SourceDriver:
                 sf = self.source.frame_at(run, seq)
                 rt._publish(rt._encode_outputs(sf.run, sf.seq, sf.stamp_ns, sf.outputs, {}))
         except NotImplementedError:
-            rt.log.error("%s cannot resend frames (no frame_at); %s must start its run over", rt.op_id, request.get("for"))
+            rt.log.error(
+                "%s cannot resend frames (no frame_at); %s must start its run over", rt.op_id, request.get("for")
+            )
             return
         except (KeyError, ValueError, TypeError, IndexError) as exc:
             rt.stats.errors += 1
@@ -713,7 +749,9 @@ def run_operator(
         os._exit(0)  # the thread still waiting inside Zenoh would hold up a normal exit
     try:
         try:
-            runtime = OperatorRuntime(graph, op_id, replica, session, shutdown.event, max_frames, replay_log, allow_truncated)
+            runtime = OperatorRuntime(
+                graph, op_id, replica, session, shutdown.event, max_frames, replay_log, allow_truncated
+            )
         except Exception as exc:  # bad parameters, missing weights: say so once, do not restart
             log.error("operator %s could not start: %s: %s", op_id, type(exc).__name__, exc)
             return EXIT_CONFIG
@@ -756,7 +794,9 @@ def main(argv: list[str] | None = None) -> int:
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return EXIT_CONFIG
-    return run_operator(graph, args.op, args.replica, args.connect, args.max_frames, args.replay_log, args.allow_truncated)
+    return run_operator(
+        graph, args.op, args.replica, args.connect, args.max_frames, args.replay_log, args.allow_truncated
+    )
 
 
 if __name__ == "__main__":

@@ -2,8 +2,8 @@
 
 Every function returns (K, h, w) bool masks (K may be 0) for a (h, w, 3) float32 image in [0, 1].
 Graph-based segmenters and k-means tile the image (each pixel in at most one mask); SAM's masks
-overlap. `operators/segmenter.py` picks one by its `method` parameter; the offline measurement in
-`umad_common/segmentation_quality.py` calls the same functions.
+overlap. `operators/segmenter.py` picks one by its `method` parameter; `umad bench segmenters`
+(`umad_common/benchmarks/segmentation_quality.py`) measures the same functions offline.
 """
 
 from __future__ import annotations

@@ -79,8 +79,11 @@ def over_bus(frames: int, size_bytes: int, hub: str, window: int) -> dict:
             "name": "bench",
             "hub": hub,
             "operators": [
-                {"id": "source", "uses": f"{__name__}:BlobSource",
-                 "params": {"frames": frames, "size_bytes": size_bytes, "window": window}},
+                {
+                    "id": "source",
+                    "uses": f"{__name__}:BlobSource",
+                    "params": {"frames": frames, "size_bytes": size_bytes, "window": window},
+                },
                 {"id": "relay", "uses": f"{__name__}:Relay", "inputs": {"blob": "source/blob"}},
                 {"id": "sink", "uses": f"{__name__}:BlobSink", "inputs": {"blob": "relay/blob"}},
             ],

@@ -26,5 +26,11 @@ def run_bench_graph(graph_data: dict, timeout_note: str = "") -> dict:
     source = launcher.stats[f"{graph.sources()[0]}.r0"]
     frames = source["frames_out"]
     busy = source.get("busy_s") or wall
-    return {"frames": frames, "fps": frames / busy, "p50_ms": source["p50_ms"], "p99_ms": source["p99_ms"],
-            "wall_s_with_startup": wall, "stats": launcher.stats}
+    return {
+        "frames": frames,
+        "fps": frames / busy,
+        "p50_ms": source["p50_ms"],
+        "p99_ms": source["p99_ms"],
+        "wall_s_with_startup": wall,
+        "stats": launcher.stats,
+    }

@@ -44,8 +44,13 @@ def scaling_graph(replicas: int, frames: int, hub: str) -> dict:
         "hub": hub,
         "operators": [
             {"id": "frames", "uses": f"{__name__}:WorldModelFrames", "params": {"frames": frames}},
-            {"id": "diff_perceptual", "kind": "difference", "inputs": {"frame": "frames/frame"}, "replicas": replicas,
-             "params": {"metric": "perceptual", "threads": 1}},
+            {
+                "id": "diff_perceptual",
+                "kind": "difference",
+                "inputs": {"frame": "frames/frame"},
+                "replicas": replicas,
+                "params": {"metric": "perceptual", "threads": 1},
+            },
             {"id": "sink", "uses": "umad_common.benchmarks.bus:BlobSink", "inputs": {"blob": "diff_perceptual/map"}},
         ],
     }

@@ -1,4 +1,4 @@
-"""`umad bench [bus|metrics|scaling|pipeline|all] [--out FILE.json]`: side-by-side ratios, one run.
+"""`umad bench [bus|metrics|differences|scaling|segmenters|pipeline|all] [--out FILE.json]`.
 
 Each bench measures both sides of its ratio in the same run on the same machine, so the ratio is
 meaningful where the absolute numbers are not. Results are printed as Markdown and, with --out,
@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-BENCHES = ("bus", "metrics", "scaling", "pipeline")
+BENCHES = ("bus", "metrics", "differences", "scaling", "segmenters", "pipeline")
 
 
 def add_arguments(parser):
@@ -19,6 +19,11 @@ def add_arguments(parser):
     parser.add_argument("--frames", type=int, default=None, help="frames per bench (default: each bench's own)")
     parser.add_argument("--pixels", type=int, default=10**8, help="pixels for the metrics bench")
     parser.add_argument("--hub", default="tcp/127.0.0.1:7449", help="loopback endpoint the bench graphs use")
+    parser.add_argument(
+        "--data", type=Path, default=None, help="segmenters: labelled AnoVox drives (default: generated)"
+    )
+    parser.add_argument("--tune", action="store_true", help="segmenters: measure a parameter grid per method")
+    parser.add_argument("--world-model", type=Path, default=None, help="segmenters: also measure refined pixel AP")
 
 
 def run(args) -> int:
@@ -42,13 +47,21 @@ def _run_one(name: str, args) -> dict:
 
         return bench_bus(frames=args.frames or 300, hub=args.hub)
     if name == "metrics":
-        from umad_common.commands.bench_metrics import bench_metrics
+        from umad_common.benchmarks.metrics import bench_metrics
 
         return bench_metrics(args.pixels)
+    if name == "differences":
+        from umad_common.benchmarks.differences import bench_differences
+
+        return bench_differences(frames=args.frames or 20)
     if name == "scaling":
         from umad_common.benchmarks.scaling import bench_scaling
 
         return bench_scaling(frames=args.frames or 40, hub=args.hub)
+    if name == "segmenters":
+        from umad_common.benchmarks.segmenters import bench_segmenters
+
+        return bench_segmenters(args.data, tune=args.tune, world_model=args.world_model, max_frames=args.frames or 0)
     from umad_common.benchmarks.pipeline import bench_pipeline
 
     return bench_pipeline(frames=args.frames or 30, hub=args.hub)

@@ -16,8 +16,9 @@ import logging
 from collections.abc import Iterator
 from pathlib import Path
 
+from umad_common import ASSETS
+
 log = logging.getLogger("umad.calibrate")
-ASSETS = Path(__file__).resolve().parents[1] / "assets"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -15,7 +15,9 @@ DEFAULT_GRAPH = Path(__file__).resolve().parents[2] / "graph.yaml"
 
 def add_graph_argument(parser: argparse.ArgumentParser, positional: bool = False) -> None:
     if positional:
-        parser.add_argument("graph", nargs="?", default=str(DEFAULT_GRAPH), help="graph file (default: the built-in graph.yaml)")
+        parser.add_argument(
+            "graph", nargs="?", default=str(DEFAULT_GRAPH), help="graph file (default: the built-in graph.yaml)"
+        )
     else:
         parser.add_argument("--graph", default=str(DEFAULT_GRAPH), help="graph file (default: the built-in graph.yaml)")
 

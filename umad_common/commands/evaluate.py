@@ -18,29 +18,51 @@ from pathlib import Path
 
 import yaml
 
+from umad_common import ASSETS
 from umad_common.commands.common import DEFAULT_GRAPH
 
 log = logging.getLogger("umad.eval")
-ASSETS = Path(__file__).resolve().parents[1] / "assets"
+
 BENCHMARK_SEED = 1  # the shipped models were trained on seed 0's normal drives
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", type=Path, default=None, help="AnoVox folder to evaluate (default: generate the built-in benchmark)")
-    parser.add_argument("--graph", type=Path, default=DEFAULT_GRAPH, help="graph file (default: the built-in graph.yaml)")
+    parser.add_argument(
+        "--data", type=Path, default=None, help="AnoVox folder to evaluate (default: generate the built-in benchmark)"
+    )
+    parser.add_argument(
+        "--graph", type=Path, default=DEFAULT_GRAPH, help="graph file (default: the built-in graph.yaml)"
+    )
     parser.add_argument("--out", type=Path, default=Path("umad-eval"), help="report folder (default: ./umad-eval)")
-    parser.add_argument("--world-model", type=Path, default=ASSETS / "world_model.safetensors", help="world model weights")
-    parser.add_argument("--features", type=Path, default=ASSETS / "feature_net.safetensors", help="perceptual feature net weights")
-    parser.add_argument("--vgg-weights", type=Path, default=None, help="torchvision VGG16 state dict: ImageNet perceptual distance instead of the feature net")
+    parser.add_argument(
+        "--world-model", type=Path, default=ASSETS / "world_model.safetensors", help="world model weights"
+    )
+    parser.add_argument(
+        "--features", type=Path, default=ASSETS / "feature_net.safetensors", help="perceptual feature net weights"
+    )
+    parser.add_argument(
+        "--vgg-weights",
+        type=Path,
+        default=None,
+        help="torchvision VGG16 state dict: ImageNet perceptual distance instead of the feature net",
+    )
     parser.add_argument("--mnad", type=Path, default=ASSETS / "mnad.safetensors", help="MNAD baseline weights")
-    parser.add_argument("--every", type=int, default=2, help="evaluate every k-th frame of each scenario (the paper: 10)")
+    parser.add_argument(
+        "--every", type=int, default=2, help="evaluate every k-th frame of each scenario (the paper: 10)"
+    )
     parser.add_argument("--scenarios", type=int, default=6, help="built-in benchmark: anomalous scenarios to generate")
     parser.add_argument("--frames", type=int, default=100, help="built-in benchmark: frames per scenario")
-    parser.add_argument("--sam-checkpoint", type=Path, default=None, help="segment-anything checkpoint: adds the SAM mask rows")
+    parser.add_argument(
+        "--sam-checkpoint", type=Path, default=None, help="segment-anything checkpoint: adds the SAM mask rows"
+    )
     parser.add_argument("--sam-model", default="vit_b", choices=["vit_b", "vit_l", "vit_h"])
-    parser.add_argument("--sam-python", default=".venv-sam/bin/python", help="interpreter of the environment with segment-anything")
+    parser.add_argument(
+        "--sam-python", default=".venv-sam/bin/python", help="interpreter of the environment with segment-anything"
+    )
     parser.add_argument("--hub", default=None, help="hub endpoint (default: the graph's)")
-    parser.add_argument("--set", action="append", default=[], metavar="OP.PARAM=VALUE", help="any other parameter override")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="OP.PARAM=VALUE", help="any other parameter override"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -124,10 +146,22 @@ def _eval_graph(args: argparse.Namespace, source: Path) -> dict:
         fused_src = next(op["inputs"]["fused"] for op in by_kind.get("mask_refiner", []))
         sam_python = Path(args.sam_python)
         data["operators"] += [
-            {"id": "segment_sam", "kind": "segmenter", "python": str(sam_python.resolve()),
-             "inputs": {"frame": frame_src, "truth": truth_src},
-             "params": {"method": "sam", "sam_checkpoint": str(args.sam_checkpoint.resolve()), "sam_model": args.sam_model}},
-            {"id": "refine_sam", "kind": "mask_refiner", "inputs": {"fused": fused_src, "masks": "segment_sam/masks"},
-             "params": {"mode": "mean"}},
+            {
+                "id": "segment_sam",
+                "kind": "segmenter",
+                "python": str(sam_python.resolve()),
+                "inputs": {"frame": frame_src, "truth": truth_src},
+                "params": {
+                    "method": "sam",
+                    "sam_checkpoint": str(args.sam_checkpoint.resolve()),
+                    "sam_model": args.sam_model,
+                },
+            },
+            {
+                "id": "refine_sam",
+                "kind": "mask_refiner",
+                "inputs": {"fused": fused_src, "masks": "segment_sam/masks"},
+                "params": {"mode": "mean"},
+            },
         ]
     return data

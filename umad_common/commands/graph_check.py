@@ -14,5 +14,7 @@ def run(args) -> int:
     if graph is None:
         return 1
     ops = graph.spec.operators
-    print(f"{args.graph}: ok ({len(ops)} operators, {sum(o.replicas for o in ops)} processes; sources {graph.sources()}, sinks {graph.sinks()})")
+    print(
+        f"{args.graph}: ok ({len(ops)} operators, {sum(o.replicas for o in ops)} processes; sources {graph.sources()}, sinks {graph.sinks()})"
+    )
     return 0

@@ -18,7 +18,12 @@ def add_arguments(parser):
     parser.add_argument("log", type=Path, help="MCAP log written by `umad launch --record`")
     parser.add_argument("--graph", default=None, help="graph file (default: the one stored in the log)")
     parser.add_argument("--record", type=Path, default=None, help="record the replayed run to this MCAP file")
-    parser.add_argument("--rate", choices=["realtime", "max"], default="max", help="realtime: 10 Hz; max: lossless, as fast as acks allow")
+    parser.add_argument(
+        "--rate",
+        choices=["realtime", "max"],
+        default="max",
+        help="realtime: 10 Hz; max: lossless, as fast as acks allow",
+    )
     parser.add_argument("--allow-truncated", action="store_true", help="replay the readable part of a truncated log")
     parser.add_argument("--set", action="append", default=[], metavar="OP.PARAM=VALUE")
 
@@ -52,4 +57,6 @@ def run(args) -> int:
     if args.rate == "realtime":
         sets += [f"{src}.pacing=realtime" for src in graph.sources()]
     print(f"{args.log}: {count} messages")
-    return Launcher(graph, Path(graph_path), sets, args.record, replay_log=args.log, allow_truncated=args.allow_truncated).run()
+    return Launcher(
+        graph, Path(graph_path), sets, args.record, replay_log=args.log, allow_truncated=args.allow_truncated
+    ).run()

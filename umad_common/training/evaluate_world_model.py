@@ -7,20 +7,18 @@
   anomaly, so it should not draw one: the ratio must be well above 1. Labels are resized
   nearest-neighbour to the model size, as the accumulator does.
 
-    python -m umad_common.training.evaluate_world_model umad_common/assets/world_model /work/data/synth
+    umad test world-model umad_common/assets/world_model.safetensors data/synth
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-from umad_common.models.world_model import State, WorldModel, load_world_model
+from umad_common.models.world_model import State, WorldModel
 from umad_common.training.train_world_model import (
     DriveArrays,
     load_drive,
@@ -114,21 +112,3 @@ def evaluate_world_model(
         figures["road_error"] = sums["road"] / max(counts["road"], 1)
         figures["anomaly_road_ratio"] = figures["anomaly_error"] / max(figures["road_error"], 1e-12)
     return figures
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("model", type=Path, help="MODEL or MODEL.safetensors (with MODEL.json beside it)")
-    parser.add_argument("data", type=Path, help="generated benchmark folder with normal/ and anomalous/")
-    parser.add_argument("--anomalous-limit", type=int, default=None, help="evaluate only the first N anomalous drives")
-    parser.add_argument("--threads", type=int, default=2)
-    args = parser.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    model, record = load_world_model(args.model)
-    figures = evaluate_world_model(model, args.data, record.get("heldout_drives", []), args.anomalous_limit)
-    print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in figures.items()}, indent=2))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -100,10 +100,3 @@ def bench_metrics(n_pixels: int = 10**7, seed: int = 0) -> dict[str, Any]:
         "memory_ratio": round(their_peak / max(1, our_peak), 1),
         "max_abs_difference": max(abs(ours["AP"] - theirs["AP"]), abs(ours["AUROC"] - theirs["AUROC"])),
     }
-
-
-if __name__ == "__main__":
-    import json
-    import sys
-
-    print(json.dumps(bench_metrics(int(float(sys.argv[1])) if len(sys.argv) > 1 else 10**7), indent=2))
