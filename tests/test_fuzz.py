@@ -7,6 +7,8 @@ received it; the stream still finishes with every frame evaluated.
 from __future__ import annotations
 
 import json
+import re
+import threading
 import time
 
 import msgpack
@@ -85,6 +87,9 @@ def test_ten_thousand_malformed_messages_crash_nothing_and_are_all_counted(tmp_p
 
     stats: dict[str, dict] = {}
     proc = start_umad("launch", str(graph_file))
+    lines: list[str] = []  # drained as it comes: a full pipe would stall the launcher and every operator
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()
     session = open_client(hub)
     try:
         sub = session.declare_subscriber(
@@ -124,8 +129,11 @@ def test_ten_thousand_malformed_messages_crash_nothing_and_are_all_counted(tmp_p
         sub.undeclare()
     finally:
         session.close()
-    out, _ = proc.communicate(timeout=600)
+    proc.wait(timeout=600)
+    reader.join(timeout=10)
+    out = "".join(lines)
     assert proc.returncode == 0, out[-5000:]
     assert sum(sent.values()) == N_PAYLOADS
     assert counted == {op: n for op, n in expected.items() if n}
     assert "restart" not in out  # no operator crashed
+    assert re.search(r"\[accumulator\.0\].*stopped after 12 frames", out), out[-3000:]  # every frame evaluated

@@ -47,6 +47,8 @@ OUTPUT_CACHE_FRAMES = 64
 MAX_PENDING_FRAMES = 256
 REPUBLISH_INTERVAL_S = 1.0
 STATS_INTERVAL_S = 1.0
+BAD_MESSAGE_LOG_FIRST = 10  # malformed messages logged one by one; later ones are summarised
+BAD_MESSAGE_LOG_INTERVAL_S = 5.0
 LIVE_WAIT_S = 60.0
 LOST_GRACE_S = 15.0
 REWIND_RETRY_S = 10.0
@@ -271,6 +273,7 @@ class OperatorRuntime:
         )
         self._subscribers: list[Any] = []
         self._last_stats = 0.0
+        self._last_bad_log = 0.0
 
     # -- wiring -----------------------------------------------------------------------------------
 
@@ -399,6 +402,16 @@ class OperatorRuntime:
             self.stats.dropped = self.joiner.dropped
             snap = self.stats.snapshot(self.data_q.qsize())
             self.stats_pub.put(json.dumps({"op": self.op_id, "replica": self.replica_id, **snap}).encode())
+
+    def _warn_bad_message(self, key: str, exc: MessageError) -> None:
+        """Log the first few malformed messages in full, then one summary line per interval: a flood
+        of garbage must not turn into a flood of log lines (stats count every one)."""
+        now = time.monotonic()
+        if self.stats.bad_messages <= BAD_MESSAGE_LOG_FIRST:
+            self.log.warning("bad message on %s: %s", key, exc)
+        elif now - self._last_bad_log >= BAD_MESSAGE_LOG_INTERVAL_S:
+            self.log.warning("%d bad messages so far; latest on %s: %s", self.stats.bad_messages, key, exc)
+            self._last_bad_log = now
 
     # -- publishing ---------------------------------------------------------------------------------
 
@@ -529,7 +542,7 @@ class OperatorRuntime:
                     msg = decode(sample.payload.to_bytes())
                 except MessageError as exc:
                     self.stats.bad_messages += 1
-                    self.log.warning("bad message on %s: %s", sample.key_expr, exc)
+                    self._warn_bad_message(str(sample.key_expr), exc)
                     continue
                 key = (msg.run, msg.seq)
                 producer = self.keys.parse_data(str(sample.key_expr))[0]
