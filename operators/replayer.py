@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from replay.log_source import recorded_frames
+from replay.log_source import recorded_frame, recorded_frames
 from umad_common.datasets.anovox import AnoVoxFrame, AnoVoxScenario, DatasetError, find_scenarios
 from umad_common.operator import Context, Output, Source, SourceFrame
 
@@ -51,6 +51,7 @@ class Replayer(Source):
         root = self.context.resolve(self.params.source)
         self.log_path = root if root.suffix == ".mcap" else None
         self.scenarios: dict[str, AnoVoxScenario] = {}
+        self._run_cache: dict = {}  # an MCAP source: the frames of the run a rewind asked for
         if self.log_path is not None:
             if not root.is_file():
                 raise DatasetError(f"{root}: MCAP log not found")
@@ -77,6 +78,9 @@ class Replayer(Source):
         scenario = self.scenarios[run]
         return len(scenario) if self.params.max_frames is None else min(len(scenario), self.params.max_frames)
 
+    def total_frames(self) -> int | None:
+        return None if self.log_path is not None else sum(self.run_length(run) for run in self.scenarios)
+
     def frames(self) -> Iterator[SourceFrame]:
         if self.log_path is not None:  # a recorded run: its payloads again, byte for byte
             yield from recorded_frames(self.log_path, self.context.graph_name, self.context.op_id, self.outputs)
@@ -87,6 +91,9 @@ class Replayer(Source):
 
     def frame_at(self, run: str, seq: int) -> SourceFrame:
         """Frame `seq` of scenario `run`, read again from disk (identical to what `frames` yields)."""
+        if self.log_path is not None:
+            c = self.context
+            return recorded_frame(self.log_path, c.graph_name, c.op_id, self.outputs, run, seq, self._run_cache)
         if run not in self.scenarios:
             raise KeyError(f"run {run!r} is not one of this replayer's scenarios {sorted(self.scenarios)}")
         if not 0 <= seq < self.run_length(run):

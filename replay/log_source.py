@@ -5,10 +5,12 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
+from pydantic import BaseModel
+
 from replay.log import LogError, read_log
 from umad_common.bus import Keys
 from umad_common.messages import MessageError, decode
-from umad_common.operator import SourceFrame
+from umad_common.operator import Context, Source, SourceFrame
 
 
 def recorded_frames(
@@ -43,3 +45,41 @@ def recorded_frames(
             yield pending.pop(key)
     if not found:
         raise LogError(f"{path}: no messages of operator {op_id!r} in graph {graph_name!r} (topics {sorted(port_of)})")
+
+
+def recorded_frame(
+    path: str | Path, graph_name: str, op_id: str, outputs: tuple[str, ...], run: str, seq: int, cache: dict
+) -> SourceFrame:
+    """Frame `run#seq` of a recorded source. The first request of a run reads the log once and
+    keeps that run's frames in `cache` (a restarted world model asks for a run's frames in a row)."""
+    if run not in cache:
+        cache.clear()
+        cache[run] = {f.seq: f for f in recorded_frames(path, graph_name, op_id, outputs, True) if f.run == run}
+    try:
+        return cache[run][seq]
+    except KeyError:
+        raise KeyError(f"{path}: frame {run}#{seq} of {op_id!r} is not in the log") from None
+
+
+class LoggedSource(Source):
+    """Stands in for a graph's source during `umad replay`: its recorded frames, byte for byte.
+
+    It takes the source's parameters (for pacing: window, acks, rate) but never builds the
+    recorded operator, so a log replays without the dataset or device it was recorded from.
+    """
+
+    def __init__(
+        self, path: str | Path, recorded: type[Source], params: BaseModel, context: Context, allow_truncated: bool
+    ):
+        self.context, self.params = context, params  # the recorded source's parameters, validated
+        self.path, self.allow_truncated = Path(path), allow_truncated
+        self.outputs = recorded.outputs
+        self._run_cache: dict = {}
+
+    def frames(self) -> Iterator[SourceFrame]:
+        c = self.context
+        return recorded_frames(self.path, c.graph_name, c.op_id, self.outputs, self.allow_truncated)
+
+    def frame_at(self, run: str, seq: int) -> SourceFrame:
+        c = self.context
+        return recorded_frame(self.path, c.graph_name, c.op_id, self.outputs, run, seq, self._run_cache)

@@ -36,6 +36,18 @@ def test_big_endian_arrays_travel_as_little_endian():
     np.testing.assert_array_equal(back.arrays["a"], arr)
 
 
+def test_boolean_masks_travel_bit_packed():
+    masks = np.zeros((3, 128, 192), bool)
+    masks[1, 10:20, 30:90] = True
+    payload = encode(Message("r", 0, arrays={"masks": masks}))
+    assert len(payload) < masks.size // 8 + 200  # one bit per pixel plus the header
+    np.testing.assert_array_equal(decode(payload).arrays["masks"], masks)
+    lying = msgpack.unpackb(payload)
+    lying["arrays"]["masks"]["shape"] = [3, 128, 193]
+    with pytest.raises(MessageError, match="needs 9264 bytes, got 9216"):
+        decode(msgpack.packb(lying, use_bin_type=True))
+
+
 def test_unsupported_dtype_is_refused_when_encoding():
     with pytest.raises(MessageError, match="cannot be sent"):
         encode(Message("r", 0, arrays={"a": np.array(["x"])}))

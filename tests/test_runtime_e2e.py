@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import threading
@@ -133,6 +134,43 @@ def test_malformed_payloads_are_counted_and_the_operator_goes_on(tmp_path, hub_e
     assert_exactly_once(tmp_path, 40)
 
 
+def test_bad_control_commands_are_rejected_and_the_operator_goes_on(tmp_path, hub_endpoint):
+    graph = toy_graph(tmp_path, hub_endpoint, frames=40, delay=0.05, replicas=1)
+    proc = start_umad("launch", str(graph))
+    stats: dict[str, dict] = {}
+    session = open_client(hub_endpoint)
+    try:
+        sub = session.declare_subscriber(
+            "umad/toy/_stats/**", lambda s: stats.update({str(s.key_expr): json.loads(s.payload.to_bytes())})
+        )
+        deadline = time.monotonic() + 60
+        while "umad/toy/_stats/triple/r0" not in stats and time.monotonic() < deadline:
+            time.sleep(0.1)
+        bad = (b"not json", b"[1]", b'{"set": 5}', b'{"set": {"factor": "big"}}', b'{"set": {"nope": 1}}')
+        for payload in bad:
+            session.put("umad/toy/_ctl/triple", payload)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and stats["umad/toy/_stats/triple/r0"]["errors"] < len(bad):
+            time.sleep(0.1)
+        assert stats["umad/toy/_stats/triple/r0"]["errors"] == len(bad)
+        assert stats["umad/toy/_stats/triple/r0"]["param_changes"] == 0
+        stopped = run_umad("op", "stop", "no_such_op", "--graph", str(graph))
+        assert stopped.returncode == 1 and "no_such_op: not running" in stopped.stderr
+        sub.undeclare()
+    finally:
+        session.close()
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0, out
+    assert out.count("rejected parameter change") == len(bad)
+    assert_exactly_once(tmp_path, 40)  # the old parameters stayed: every total is still x6
+
+
+def test_set_without_a_running_graph_says_so(tmp_path, hub_endpoint):
+    result = run_umad("set", "triple.factor=4", "--graph", str(toy_graph(tmp_path, hub_endpoint)), timeout=60)
+    assert result.returncode == 1
+    assert f"no hub at {hub_endpoint}" in result.stderr
+
+
 def test_frame_that_raises_is_logged_counted_and_the_stream_goes_on(tmp_path, hub_endpoint):
     graph = toy_graph(tmp_path, hub_endpoint, frames=10, replicas=1)
     result = run_umad("launch", str(graph), "--set", "double.fail_on_seq=3", timeout=120)
@@ -160,6 +198,42 @@ def test_record_then_replay_gives_byte_identical_sink_outputs(tmp_path, hub_endp
 
     a, b = sink_payloads(first), sink_payloads(second)
     assert len(a) == 2 * 16 and a == b
+
+
+def test_replay_needs_only_the_log_and_keeps_the_recorded_overrides(tmp_path, hub_endpoint):
+    """The data folder is gone and no --graph is given: the log's graph, its --set overrides and its
+    source frames reproduce the sink's outputs byte for byte."""
+    from umad_common.datasets.synthetic.generator import generate_benchmark
+
+    generate_benchmark(tmp_path / "data", 0, 1, 6, 5, (96, 64))
+    graph = tmp_path / "graph.yaml"
+    graph.write_text(
+        yaml.safe_dump(
+            {
+                "name": "logonly",
+                "hub": hub_endpoint,
+                "operators": [
+                    {"id": "replayer", "kind": "replayer", "params": {"source": str(tmp_path / "data" / "anomalous")}},
+                    {"id": "stats", "uses": "tests.toy_ops:ImageStats", "inputs": {"image": "replayer/camera"}},
+                ],
+            },
+            sort_keys=False,
+        )
+    )
+    first, second = tmp_path / "first.mcap", tmp_path / "second.mcap"
+    result = run_umad("launch", str(graph), "--record", str(first), "--set", "stats.scale=2", timeout=120)
+    assert result.returncode == 0, result.stdout
+    shutil.rmtree(tmp_path / "data")
+    graph.unlink()
+    result = run_umad("replay", str(first), "--record", str(second), timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+    def stats_payloads(path):
+        return {decode(r.data).seq: r.data for r in read_log(path) if r.topic == "umad/logonly/stats/stats"}
+
+    a, b = stats_payloads(first), stats_payloads(second)
+    assert len(a) == 7 and a == b  # six frames and the end-of-run marker
+    assert all(decode(a[seq]).meta["params"] == {"scale": 2.0} for seq in range(6))
 
 
 def test_truncated_log_says_how_many_messages_were_readable(tmp_path, hub_endpoint):

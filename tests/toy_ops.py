@@ -139,3 +139,19 @@ class Logger(Operator):
                 + "\n"
             )
         return {}
+
+
+class ImageStats(Operator):
+    """Per frame, the mean and max of one image array: a light sink for graphs with the real replayer."""
+
+    kind = "toy_image_stats"
+    inputs = (Input("image"),)
+    outputs = ("stats",)
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        scale: float = 1.0
+
+    def process(self, frame):
+        rgb = frame.inputs["image"].arrays["rgb"].astype(np.float32)
+        return {"stats": Output({"x": np.array([rgb.mean(), rgb.max()], np.float32) * self.params.scale})}

@@ -11,6 +11,7 @@ import logging
 import os
 import signal
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -59,23 +60,40 @@ def open_hub(endpoint: str = DEFAULT_HUB, tls: TlsConfig | None = None) -> zenoh
 
 
 def open_client(
-    endpoint: str = DEFAULT_HUB, tls: TlsConfig | None = None, cancel: threading.Event | None = None
+    endpoint: str = DEFAULT_HUB,
+    tls: TlsConfig | None = None,
+    cancel: threading.Event | None = None,
+    timeout_s: float | None = None,
 ) -> zenoh.Session | None:
     """A client session connected to the hub at `endpoint`, waiting for the hub as long as it takes.
 
-    With `cancel`, the wait happens off the main thread so a signal can end it: returns None then.
+    With `cancel` or `timeout_s`, the wait happens off the main thread so a signal can end it, or
+    it gives up after `timeout_s`: returns None then.
     """
     conf = zenoh_config("client", connect=[endpoint], tls=tls)
-    if cancel is None:
+    if cancel is None and timeout_s is None:
         return zenoh.open(conf)
+    cancel = cancel or threading.Event()
+    deadline = None if timeout_s is None else time.monotonic() + timeout_s
     result: list[zenoh.Session] = []
     opener = threading.Thread(target=lambda: result.append(zenoh.open(conf)), daemon=True)
     opener.start()
     while opener.is_alive() and not cancel.is_set():
         opener.join(0.1)
+        if deadline is not None and time.monotonic() > deadline:
+            cancel.set()
     if result and cancel.is_set():
         close_session(result[0])
-    return None if cancel.is_set() else result[0]
+    return None if cancel.is_set() or not result else result[0]
+
+
+def live_replicas(session: zenoh.Session, keys: Keys, op: str = "*", timeout_s: float = 2.0) -> set[tuple[str, str]]:
+    """(operator, replica) pairs holding a liveliness token right now: who would hear a command."""
+    found = set()
+    for reply in session.liveliness().get(keys.live(op, "*"), timeout=timeout_s):
+        if reply.ok is not None:
+            found.add(keys.parse_live(str(reply.ok.key_expr)))
+    return found
 
 
 def close_session(session: zenoh.Session, timeout_s: float = 5.0) -> bool:

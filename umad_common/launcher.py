@@ -31,6 +31,9 @@ from umad_common.runtime import EXIT_CONFIG
 log = logging.getLogger("umad.launch")
 STOP_GRACE_S = 10.0
 RECORDER_IDLE_S = 1.0
+HUB_CONNECT_TIMEOUT_S = 60.0
+PROGRESS_INTERVAL_S = 15.0
+HUB_MIN_LIFETIME_S = 5.0  # a hub that dies sooner after its start counts as failing to start
 
 
 @dataclass
@@ -42,6 +45,7 @@ class Replica:
     proc: subprocess.Popen | None = None
     restarts: int = 0
     restart_at: float | None = None
+    started_at: float = 0.0
     finished: bool = False
     failed: bool = False
     readers: list[threading.Thread] = field(default_factory=list)
@@ -49,6 +53,33 @@ class Replica:
     @property
     def name(self) -> str:
         return f"{self.op_id}.{self.index}"
+
+
+class ProgressLine:
+    """Every PROGRESS_INTERVAL_S: frames acked by every sink, out of the total when the sources know
+    it, with the rate and the time left. Nothing until the first frame is through."""
+
+    def __init__(self) -> None:
+        self.last = time.monotonic()
+        self.first: tuple[float, int] | None = None
+
+    def update(self, source_stats: list[dict | None]) -> str | None:
+        now = time.monotonic()
+        known = [s for s in source_stats if s]
+        done = sum(s.get("acked", 0) for s in known)
+        if done == 0 or now - self.last < PROGRESS_INTERVAL_S:
+            return None
+        self.last = now
+        if self.first is None:
+            self.first = (now, done)
+            return f"{done} frames through the graph"
+        rate = (done - self.first[1]) / max(now - self.first[0], 1e-9)
+        totals = [s.get("total_frames") for s in known]
+        if len(known) < len(source_stats) or None in totals:
+            return f"{done} frames through the graph, {rate:.2f} frames/s"
+        total = sum(totals)
+        left = f", ~{(total - done) / rate:.0f} s left" if rate > 0 else ""
+        return f"{done}/{total} frames ({100 * done / max(total, 1):.0f} %), {rate:.2f} frames/s{left}"
 
 
 class Launcher:
@@ -121,9 +152,8 @@ class Launcher:
             "--connect",
             self.hub,
         ]
-        for text in self.sets:
-            if text.split(".", 1)[0] == spec.id:
-                cmd += ["--set", text]
+        for text in self.sets:  # every process sees the whole effective graph (e.g. a source's pacing)
+            cmd += ["--set", text]
         return cmd
 
     # -- processes ----------------------------------------------------------------------------------
@@ -139,15 +169,21 @@ class Launcher:
 
     def _spawn(self, rep: Replica) -> None:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        rep.proc = subprocess.Popen(
-            rep.command,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            bufsize=1,
-            start_new_session=True,
-            env=env,
-        )
+        rep.started_at = time.monotonic()
+        try:
+            rep.proc = subprocess.Popen(
+                rep.command,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+                bufsize=1,
+                start_new_session=True,
+                env=env,
+            )
+        except OSError as exc:  # e.g. an operator's `python:` interpreter that does not exist
+            self._say(rep.name, f"cannot start {rep.command[0]}: {exc}")
+            rep.proc, rep.failed, rep.restart_at = None, True, None
+            return
         reader = threading.Thread(target=self._pump, args=(rep, rep.proc), daemon=True)
         reader.start()
         rep.readers.append(reader)
@@ -184,14 +220,36 @@ class Launcher:
         rep.proc = None
         rep.restart_at = time.monotonic() + delay
 
-    def _watch_hub(self) -> None:
-        """The hub is restarted whenever it dies; clients reconnect to it on their own."""
+    def _watch_hub(self) -> bool:
+        """The hub is restarted whenever it dies (clients reconnect on their own), with backoff; a
+        hub that dies within seconds of each of `max_restarts` starts (say, its port is taken)
+        fails the graph. Returns False then."""
         hub = self.hub_replica
         if hub is None or hub.proc is None or hub.proc.poll() is None:
-            return
-        hub.restarts += 1
-        self._say("hub", f"exited with {hub.proc.returncode}; restarting (restart {hub.restarts})")
-        self._spawn(hub)
+            return True
+        now = time.monotonic()
+        if hub.restart_at is None:
+            lived = now - hub.started_at
+            hub.restarts = hub.restarts + 1 if lived < HUB_MIN_LIFETIME_S else 1
+            if hub.restarts > self.max_restarts:
+                self._say("hub", f"exited with {hub.proc.returncode} {hub.restarts - 1} times in a row at start")
+                return False
+            delay = 0.5 * 2 ** (hub.restarts - 1)
+            self._say("hub", f"exited with {hub.proc.returncode}; restarting in {delay:.1f}s")
+            hub.restart_at = now + delay
+        if now >= hub.restart_at:
+            hub.restart_at = None
+            self._spawn(hub)
+        return True
+
+    def _stop_hub(self) -> None:
+        if self.hub_replica is not None and self.hub_replica.proc is not None:
+            self.hub_replica.proc.send_signal(signal.SIGTERM)
+            try:
+                self.hub_replica.proc.wait(timeout=STOP_GRACE_S)
+            except subprocess.TimeoutExpired:
+                self.hub_replica.proc.kill()
+        cleanup_stale_shm()
 
     def _terminate_all(self) -> None:
         for rep in self.replicas:
@@ -225,7 +283,15 @@ class Launcher:
         if self.start_hub:
             self.hub_replica = Replica("hub", 0, self._hub_command(), False)
             self._spawn(self.hub_replica)
-        hub = open_client(self.hub, tls)
+        hub = open_client(self.hub, tls, cancel=self._stop, timeout_s=HUB_CONNECT_TIMEOUT_S)
+        if hub is None:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+            self._stop_hub()
+            if self._stop.is_set():
+                return 130
+            log.error("no hub answered at %s within %.0fs", self.hub, HUB_CONNECT_TIMEOUT_S)
+            return 1
         recorder = None
         subscribers = []
         try:
@@ -235,7 +301,9 @@ class Launcher:
                 subscribers.append(hub.declare_subscriber(keys.control("_launcher"), self._on_control))
                 if self.record:
                     recorder = McapRecorder(
-                        self.record, self.graph_file.read_text(), {"base_dir": str(self.graph.base_dir)}
+                        self.record,
+                        self.graph_file.read_text(),
+                        {"base_dir": str(self.graph.base_dir), "sets": json.dumps(self.sets)},
                     )
                     subscribers.append(
                         hub.declare_subscriber(f"{keys.root}/**", lambda s: self._on_record(recorder, s))
@@ -249,28 +317,30 @@ class Launcher:
             self._terminate_all()
             return code
         finally:
+            self._terminate_all()  # also when something above raised: no operator outlives the launcher
             for sub in subscribers:
                 sub.undeclare()
             if recorder is not None:
                 recorder.close()
                 log.info("recorded %d messages to %s", recorder.count, self.record)
             hub.close()
-            if self.hub_replica is not None and self.hub_replica.proc is not None:
-                self.hub_replica.proc.send_signal(signal.SIGTERM)
-                try:
-                    self.hub_replica.proc.wait(timeout=STOP_GRACE_S)
-                except subprocess.TimeoutExpired:
-                    self.hub_replica.proc.kill()
-            cleanup_stale_shm()
+            self._stop_hub()
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
             self._print_summary()
 
     def _supervise(self) -> int:
         sources = [r for r in self.replicas if r.is_source]
+        progress = ProgressLine()
         while not self._stop.is_set():
+            if not self.quiet:
+                line = progress.update([self.stats.get(f"{r.op_id}.r{r.index}") for r in sources])
+                if line:
+                    self._say("progress", line)
             self._apply_control()
-            self._watch_hub()
+            if not self._watch_hub():
+                log.error("graph failed: the hub at %s cannot start", self.hub)
+                return 1
             for rep in self.replicas:
                 self._watch(rep)
             if any(r.failed for r in self.replicas):

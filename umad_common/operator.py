@@ -31,6 +31,8 @@ from pydantic import BaseModel, ConfigDict
 
 from umad_common.messages import Message
 
+PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # holds umad_common/ (and operators/, replay/)
+
 
 class NoParams(BaseModel):
     """Parameter schema of an operator that takes none."""
@@ -82,9 +84,15 @@ class Context:
     log: logging.Logger = field(default_factory=lambda: logging.getLogger("umad.op"))
 
     def resolve(self, path: str | Path) -> Path:
-        """A path from the parameters, relative to the graph file's folder unless absolute."""
+        """A path from the parameters: absolute, or relative to the graph file's folder; failing
+        that, relative to the installed package root, so the shipped `umad_common/assets/...`
+        defaults work for a graph kept in any folder."""
         p = Path(path).expanduser()
-        return p if p.is_absolute() else (self.base_dir / p)
+        if p.is_absolute():
+            return p
+        local = self.base_dir / p
+        shipped = PACKAGE_ROOT / p
+        return shipped if not local.exists() and shipped.exists() else local
 
 
 class Operator:
@@ -155,6 +163,10 @@ class Source(Operator):
         """One earlier frame again, identical to what `frames` yielded: lets a restarted stateful
         operator re-observe a run. Sources without random access leave this unimplemented."""
         raise NotImplementedError
+
+    def total_frames(self) -> int | None:
+        """How many frames `frames` will yield, when known up front (the launcher shows progress)."""
+        return None
 
 
 BUILTIN_KINDS = {

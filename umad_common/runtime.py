@@ -39,7 +39,7 @@ from replay.log import LogError
 from umad_common.bus import Keys, ShutdownSignal, close_session, open_client
 from umad_common.graph import Graph, GraphError, load_graph, merge_params, parse_assignment
 from umad_common.messages import Message, MessageError, decode, encode
-from umad_common.operator import Context, Frame, Operator, Output, Source
+from umad_common.operator import Context, Frame, Operator, Output, Source, SourceFrame
 
 log = logging.getLogger("umad.runtime")
 
@@ -82,6 +82,8 @@ class Stats:
     retransmits: int = 0
     param_changes: int = 0
     busy_s: float = 0.0  # sources: first send to last ack
+    acked: int = 0  # sources: frames every sink has acked
+    total_frames: int | None = None  # sources: frames the stream will have, when known
     latency: LatencyWindow = field(default_factory=LatencyWindow)
 
     def snapshot(self, queue_depth: int) -> dict[str, Any]:
@@ -254,7 +256,13 @@ class OperatorRuntime:
         self.stats = Stats()
         self.log = logging.getLogger(f"umad.{op_id}")
         context = Context(op_id, replica, graph.name, graph.base_dir, self.log)
-        self.operator: Operator = self.cls(self.spec.params, context)
+        if replay_log and issubclass(self.cls, Source):
+            from replay.log_source import LoggedSource
+
+            params = self.cls.validate_params(self.spec.params)
+            self.operator: Operator = LoggedSource(replay_log, self.cls, params, context, allow_truncated)
+        else:
+            self.operator = self.cls(self.spec.params, context)
         self.data_q: queue.Queue = queue.Queue(maxsize=64)
         self.ctl_q: queue.Queue = queue.Queue()
         self.members = Membership()
@@ -354,8 +362,12 @@ class OperatorRuntime:
                 self._apply_control(sample.payload.to_bytes())
 
     def _apply_control(self, payload: bytes) -> None:
+        """Stop, resend or a parameter change. A change that fails validation, or that the operator
+        refuses (a weight file that does not load), is logged and counted; the old parameters stay."""
         try:
             command = json.loads(payload)
+            if not isinstance(command, dict):
+                raise TypeError(f"expected a JSON object with `set`, `stop` or `resend`, got {type(command).__name__}")
             if command.get("stop"):
                 self.log.info("stop requested on the control key")
                 self.shutdown.set()
@@ -364,14 +376,25 @@ class OperatorRuntime:
                 self.resend_requests.append(command["resend"])
                 return
             updates = command["set"]
-            params = self.operator.params.model_dump()
+            if not isinstance(updates, dict):
+                raise TypeError(f"`set` must map parameter names to values, got {type(updates).__name__}")
+            old = self.operator.params
+            params = old.model_dump()
             merge_params(params, updates)
             new = self.cls.validate_params(params)
         except (ValueError, KeyError, TypeError, ValidationError, GraphError) as exc:
             self.stats.errors += 1
             self.log.error("rejected parameter change %r: %s", payload[:200], exc)
             return
-        self.operator.update_params(new)
+        try:
+            self.operator.update_params(new)
+        except Exception as exc:  # the operator could not take the change: keep running as before
+            self.stats.errors += 1
+            self.log.error(
+                "parameter change %s refused by %s: %s; keeping the old parameters", updates, self.op_id, exc
+            )
+            self.operator.params = old
+            return
         self.stats.param_changes += 1
         self.log.info("parameters changed: %s", updates)
 
@@ -469,7 +492,7 @@ class OperatorRuntime:
         ended: dict[str, list[tuple[str, bytes]]] = {}
         next_seq: dict[str, int] = defaultdict(int)
         in_order: dict[str, dict[int, Frame]] = defaultdict(dict)
-        deadline_s = float(getattr(self.operator.params, "deadline_ms", 0) or 0) / 1e3 if self._live_mode() else 0.0
+        live = self._live_mode()
 
         def finish(frame: Frame) -> None:
             key = (frame.run, frame.seq)
@@ -533,6 +556,8 @@ class OperatorRuntime:
         while not self.shutdown.is_set():
             live_changed = self._handle_service()
             self._publish_stats()
+            # read each time round: `umad set OP.deadline_ms=...` applies from the next frame on
+            deadline_s = float(getattr(self.operator.params, "deadline_ms", 0) or 0) / 1e3 if live else 0.0
             try:
                 port, sample = self.data_q.get(timeout=0.05)
             except queue.Empty:
@@ -598,6 +623,7 @@ class SourceDriver:
         self.ack_q: queue.Queue = queue.Queue()
         self.inflight: dict[tuple[str, int], tuple[list[tuple[str, bytes]], float, float]] = {}
         self.e2e = LatencyWindow()
+        self.markers: set[tuple[str, int]] = set()  # end-of-run keys, which are not frames
 
     def run(self) -> None:
         rt = self.rt
@@ -605,18 +631,15 @@ class SourceDriver:
             rt.session.declare_subscriber(rt.keys.ack, lambda s: self.ack_q.put(s.payload.to_bytes()))
         )
         self._wait_for_graph()
+        rt.stats.total_frames = self.source.total_frames()
+        if rt.max_frames is not None and rt.stats.total_frames is not None:
+            rt.stats.total_frames = min(rt.stats.total_frames, rt.max_frames)
         sent = 0
         current: str | None = None
         count = 0
         last_stamp = 0
         next_due = started = time.monotonic()
-        if rt.replay_log:
-            from replay.log_source import recorded_frames
-
-            frames = recorded_frames(rt.replay_log, rt.graph.name, rt.op_id, rt.cls.outputs, rt.allow_truncated)
-        else:
-            frames = self.source.frames()
-        for sf in frames:
+        for sf in self.source.frames():
             if rt.shutdown.is_set() or (rt.max_frames is not None and sent >= rt.max_frames):
                 break
             if current is not None and sf.run != current:
@@ -630,11 +653,7 @@ class SourceDriver:
             else:
                 while len(self.inflight) >= self.window and not rt.shutdown.is_set():
                     self._service(0.01)
-            if sf.raw:
-                payloads = list(sf.raw.items())
-            else:
-                payloads = rt._encode_outputs(sf.run, sf.seq, sf.stamp_ns, sf.outputs, {})
-            self._send((sf.run, sf.seq), payloads)
+            self._send((sf.run, sf.seq), self._payloads(sf))
             sent += 1
             count += 1
             last_stamp = sf.stamp_ns
@@ -658,6 +677,12 @@ class SourceDriver:
                 self.rt.log.warning("starting although operators are not live: %s", sorted(missing))
                 return
             time.sleep(0.05)
+
+    def _payloads(self, sf: SourceFrame) -> list[tuple[str, bytes]]:
+        """A source frame's messages: recorded bytes as they are, or its outputs encoded."""
+        if sf.raw:
+            return list(sf.raw.items())
+        return self.rt._encode_outputs(sf.run, sf.seq, sf.stamp_ns, sf.outputs, {})
 
     def _send(self, key: tuple[str, int], payloads: list[tuple[str, bytes]]) -> None:
         now = time.monotonic()
@@ -689,6 +714,8 @@ class SourceDriver:
                     if self.sinks <= self.acks[key]:
                         first_sent = self.inflight.pop(key)[1]
                         self.acks.pop(key)
+                        if key not in self.markers:
+                            rt.stats.acked += 1
                         self.e2e.add(time.monotonic() - first_sent)
                         rt.stats.latency.add(time.monotonic() - first_sent)
             try:
@@ -717,8 +744,7 @@ class SourceDriver:
         try:
             run, first, last = str(request["run"]), int(request["from"]), int(request["to"])
             for seq in range(first, last):
-                sf = self.source.frame_at(run, seq)
-                rt._publish(rt._encode_outputs(sf.run, sf.seq, sf.stamp_ns, sf.outputs, {}))
+                rt._publish(self._payloads(self.source.frame_at(run, seq)))
         except NotImplementedError:
             rt.log.error(
                 "%s cannot resend frames (no frame_at); %s must start its run over", rt.op_id, request.get("for")
@@ -736,6 +762,7 @@ class SourceDriver:
         while self.inflight and not rt.shutdown.is_set():
             self._service(0.01)
         markers = rt._markers(run, frames, stamp_ns, {"eos": True, "frames": frames})
+        self.markers.add((run, frames))
         self._send((run, frames), markers)
         while self.inflight and not rt.shutdown.is_set():
             self._service(0.01)

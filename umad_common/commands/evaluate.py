@@ -50,7 +50,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--every", type=int, default=2, help="evaluate every k-th frame of each scenario (the paper: 10)"
     )
-    parser.add_argument("--scenarios", type=int, default=6, help="built-in benchmark: anomalous scenarios to generate")
+    parser.add_argument(
+        "--scenarios",
+        type=int,
+        default=12,
+        help="built-in benchmark: anomalous scenarios to generate (3 per anomaly category)",
+    )
     parser.add_argument("--frames", type=int, default=100, help="built-in benchmark: frames per scenario")
     parser.add_argument(
         "--sam-checkpoint", type=Path, default=None, help="segment-anything checkpoint: adds the SAM mask rows"
@@ -78,6 +83,16 @@ def run(args: argparse.Namespace) -> int:
         if not path.is_file():
             print(f"{what} {path}: weight file not found", file=sys.stderr)
             return 1
+    if args.sam_checkpoint and not args.sam_checkpoint.is_file():
+        print(f"--sam-checkpoint {args.sam_checkpoint}: checkpoint file not found", file=sys.stderr)
+        return 1
+    if args.sam_checkpoint and not Path(args.sam_python).is_file():
+        print(
+            f"--sam-python {args.sam_python}: no such interpreter; build the SAM environment with "
+            "`bash .ci/sam_env.sh .venv-sam`",
+            file=sys.stderr,
+        )
+        return 1
     data = args.data.resolve() if args.data else _builtin_benchmark(out / "benchmark", args.scenarios, args.frames)
     source = data / "anomalous" if (data / "anomalous").is_dir() else data
 

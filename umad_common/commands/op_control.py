@@ -8,9 +8,13 @@ producer from the next complete frame on.
 from __future__ import annotations
 
 import json
+import sys
 import time
+from pathlib import Path
 
 from umad_common.commands.common import add_graph_argument, load_graph_or_exit
+
+CONNECT_TIMEOUT_S = 10.0
 
 
 def add_arguments(parser):
@@ -20,19 +24,33 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    from umad_common.bus import Keys, open_client
+    from umad_common.bus import Keys, live_replicas, open_client
 
     graph = load_graph_or_exit(args.graph)
     if graph is None:
         return 1
     action = args._words[1]
     if action == "start" and args.id not in {o.id for o in graph.spec.operators}:
-        print(f"{args.graph}: no operator {args.id!r} to start")
+        print(f"{args.graph}: no operator {args.id!r} to start", file=sys.stderr)
         return 1
-    session = open_client(args.connect or graph.spec.hub)
+    hub = args.connect or graph.spec.hub
+    session = open_client(hub, graph.tls_config(), timeout_s=CONNECT_TIMEOUT_S)
+    if session is None:
+        print(
+            f"no hub at {hub} within {CONNECT_TIMEOUT_S:.0f}s: is the graph running (`umad launch`)?", file=sys.stderr
+        )
+        return 1
+    keys = Keys(graph.name)
     try:
-        time.sleep(0.3)
-        session.put(Keys(graph.name).control("_launcher"), json.dumps({action: args.id, "graph": str(args.graph)}))
+        live = {op for op, _ in live_replicas(session, keys)}
+        if not live:
+            print(f"no operator of graph {graph.name!r} is live at {hub}: nothing to {action}", file=sys.stderr)
+            return 1
+        if action == "stop" and args.id not in live:
+            print(f"{args.id}: not running in graph {graph.name!r} (live: {sorted(live)})", file=sys.stderr)
+            return 1
+        graph_file = str(Path(args.graph).resolve())  # the launcher may run in another folder
+        session.put(keys.control("_launcher"), json.dumps({action: args.id, "graph": graph_file}))
         time.sleep(0.3)
     finally:
         session.close()

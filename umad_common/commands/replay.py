@@ -7,6 +7,7 @@ log is used.
 
 from __future__ import annotations
 
+import json
 import sys
 import tempfile
 from pathlib import Path
@@ -39,21 +40,23 @@ def run(args) -> int:
         print(exc, file=sys.stderr)
         return 1
     graph_path = args.graph
+    sets = list(args.set)
     if graph_path is None:
-        text = read_metadata(args.log).get("graph")
+        metadata = read_metadata(args.log)
+        sets = json.loads(metadata.get("sets") or "[]") + sets  # the recorded run's overrides, then these
+        text = metadata.get("graph")
         if not text:
             print(f"{args.log}: the log stores no graph; pass --graph", file=sys.stderr)
             return 1
         data = yaml.safe_load(text)
-        data.setdefault("base_dir", read_metadata(args.log).get("base_dir") or str(Path.cwd()))
+        data.setdefault("base_dir", metadata.get("base_dir") or str(Path.cwd()))
         tmp = Path(tempfile.mkdtemp(prefix="umad-replay-")) / "graph.yaml"
         tmp.write_text(yaml.safe_dump(data, sort_keys=False))
         graph_path = str(tmp)
         print(f"using the graph stored in the log ({tmp})")
-    graph = load_graph_or_exit(graph_path, args.set)
+    graph = load_graph_or_exit(graph_path, sets)
     if graph is None:
         return 1
-    sets = list(args.set)
     if args.rate == "realtime":
         sets += [f"{src}.pacing=realtime" for src in graph.sources()]
     print(f"{args.log}: {count} messages")

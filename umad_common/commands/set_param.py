@@ -9,6 +9,8 @@ import time
 from umad_common.commands.common import add_graph_argument, load_graph_or_exit, parse_sets
 from umad_common.graph import GraphError
 
+CONNECT_TIMEOUT_S = 10.0
+
 
 def add_arguments(parser):
     parser.add_argument("assignments", nargs="+", metavar="OP.PARAM=VALUE", help="e.g. fusion.weights.ssim=0.5")
@@ -17,7 +19,7 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    from umad_common.bus import Keys, open_client
+    from umad_common.bus import Keys, live_replicas, open_client
 
     graph = load_graph_or_exit(args.graph)
     if graph is None:
@@ -28,13 +30,25 @@ def run(args) -> int:
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return 1
-    session = open_client(args.connect or graph.spec.hub)
+    hub = args.connect or graph.spec.hub
+    session = open_client(hub, graph.tls_config(), timeout_s=CONNECT_TIMEOUT_S)
+    if session is None:
+        print(
+            f"no hub at {hub} within {CONNECT_TIMEOUT_S:.0f}s: is the graph running (`umad launch`)?", file=sys.stderr
+        )
+        return 1
+    keys = Keys(graph.name)
+    missing = []
     try:
-        time.sleep(0.3)
+        live = {op for op, _ in live_replicas(session, keys)}
         for op, params in overrides.items():
-            session.put(Keys(graph.name).control(op), json.dumps({"set": params}))
-            print(f"{op}: {params}")
+            if op not in live:
+                missing.append(op)
+                print(f"{op}: no live replica in graph {graph.name!r}; not changed", file=sys.stderr)
+                continue
+            session.put(keys.control(op), json.dumps({"set": params}))
+            print(f"{op}: {params} (from its next frame on)")
         time.sleep(0.3)
     finally:
         session.close()
-    return 0
+    return 1 if missing else 0
