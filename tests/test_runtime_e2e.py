@@ -75,6 +75,18 @@ def zenoh_segments() -> set[str]:
     return {p.name for p in Path("/dev/shm").glob("*.zenoh")} if Path("/dev/shm").is_dir() else set()
 
 
+def watch_stats(session, wait_for: str) -> tuple[dict[str, dict], object]:
+    """Collect the toy graph's stats by key; returns once `wait_for`'s first replica has reported."""
+    stats: dict[str, dict] = {}
+    sub = session.declare_subscriber(
+        "umad/toy/_stats/**", lambda s: stats.update({str(s.key_expr): json.loads(s.payload.to_bytes())})
+    )
+    deadline = time.monotonic() + 60
+    while f"umad/toy/_stats/{wait_for}/r0" not in stats and time.monotonic() < deadline:
+        time.sleep(0.1)
+    return stats, sub
+
+
 def test_toy_graph_delivers_every_frame_exactly_once(tmp_path, hub_endpoint):
     before = zenoh_segments()
     result = run_umad("launch", str(toy_graph(tmp_path, hub_endpoint)), timeout=120)
@@ -107,15 +119,9 @@ def test_sigkill_of_a_replica_loses_and_duplicates_nothing(tmp_path, hub_endpoin
 def test_malformed_payloads_are_counted_and_the_operator_goes_on(tmp_path, hub_endpoint):
     graph = toy_graph(tmp_path, hub_endpoint, frames=40, delay=0.05, replicas=1)
     proc = start_umad("launch", str(graph))
-    stats: dict[str, dict] = {}
     session = open_client(hub_endpoint)
     try:
-        sub = session.declare_subscriber(
-            "umad/toy/_stats/**", lambda s: stats.update({str(s.key_expr): json.loads(s.payload.to_bytes())})
-        )
-        deadline = time.monotonic() + 60
-        while "umad/toy/_stats/triple/r0" not in stats and time.monotonic() < deadline:
-            time.sleep(0.1)
+        stats, sub = watch_stats(session, "triple")
         pub = session.declare_publisher("umad/toy/source/value", congestion_control=zenoh.CongestionControl.BLOCK)
         for payload in (b"garbage", b"\x80", b"\x81\xa1v\x07"):
             pub.put(payload)
@@ -137,15 +143,9 @@ def test_malformed_payloads_are_counted_and_the_operator_goes_on(tmp_path, hub_e
 def test_bad_control_commands_are_rejected_and_the_operator_goes_on(tmp_path, hub_endpoint):
     graph = toy_graph(tmp_path, hub_endpoint, frames=40, delay=0.05, replicas=1)
     proc = start_umad("launch", str(graph))
-    stats: dict[str, dict] = {}
     session = open_client(hub_endpoint)
     try:
-        sub = session.declare_subscriber(
-            "umad/toy/_stats/**", lambda s: stats.update({str(s.key_expr): json.loads(s.payload.to_bytes())})
-        )
-        deadline = time.monotonic() + 60
-        while "umad/toy/_stats/triple/r0" not in stats and time.monotonic() < deadline:
-            time.sleep(0.1)
+        stats, sub = watch_stats(session, "triple")
         bad = (b"not json", b"[1]", b'{"set": 5}', b'{"set": {"factor": "big"}}', b'{"set": {"nope": 1}}')
         for payload in bad:
             session.put("umad/toy/_ctl/triple", payload)

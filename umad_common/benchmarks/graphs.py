@@ -24,7 +24,7 @@ def run_bench_graph(graph_data: dict, timeout_note: str = "") -> dict:
     if code != 0:
         raise RuntimeError(f"benchmark graph {graph.name} failed with exit code {code} {timeout_note}")
     source = launcher.stats[f"{graph.sources()[0]}.r0"]
-    frames = source["frames_out"]
+    frames = source["acked"]  # frames through every sink (end-of-run markers not counted)
     busy = source.get("busy_s") or wall
     return {
         "frames": frames,

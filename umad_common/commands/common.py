@@ -11,6 +11,7 @@ from typing import Any
 from umad_common.graph import Graph, GraphError, load_graph, parse_assignment
 
 DEFAULT_GRAPH = Path(__file__).resolve().parents[2] / "graph.yaml"
+CONNECT_TIMEOUT_S = 10.0  # how long `umad set` / `umad op` wait for a running graph's hub
 
 
 def add_graph_argument(parser: argparse.ArgumentParser, positional: bool = False) -> None:
@@ -39,3 +40,23 @@ def load_graph_or_exit(path: str, sets: list[str] | None = None) -> Graph | None
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return None
+
+
+def add_connect_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--connect", default=None, help="hub endpoint (default: the graph's `hub`)")
+
+
+def connect_to_running_graph(graph: Graph, connect: str | None):
+    """A session on the running graph's hub and the operators live there, or None after saying that
+    no hub answered: commands to a graph that is not running must fail fast, not hang."""
+    from umad_common.bus import Keys, live_replicas, open_client
+
+    hub = connect or graph.spec.hub
+    session = open_client(hub, graph.tls_config(), timeout_s=CONNECT_TIMEOUT_S)
+    if session is None:
+        print(
+            f"no hub at {hub} within {CONNECT_TIMEOUT_S:.0f}s: is the graph running (`umad launch`)?", file=sys.stderr
+        )
+        return None
+    live = {op for op, _ in live_replicas(session, Keys(graph.name))}
+    return session, live

@@ -12,19 +12,22 @@ import sys
 import time
 from pathlib import Path
 
-from umad_common.commands.common import add_graph_argument, load_graph_or_exit
-
-CONNECT_TIMEOUT_S = 10.0
+from umad_common.commands.common import (
+    add_connect_argument,
+    add_graph_argument,
+    connect_to_running_graph,
+    load_graph_or_exit,
+)
 
 
 def add_arguments(parser):
     parser.add_argument("id", help="operator id in the graph file")
     add_graph_argument(parser)
-    parser.add_argument("--connect", default=None, help="hub endpoint (default: the graph's `hub`)")
+    add_connect_argument(parser)
 
 
 def run(args) -> int:
-    from umad_common.bus import Keys, live_replicas, open_client
+    from umad_common.bus import Keys
 
     graph = load_graph_or_exit(args.graph)
     if graph is None:
@@ -33,24 +36,19 @@ def run(args) -> int:
     if action == "start" and args.id not in {o.id for o in graph.spec.operators}:
         print(f"{args.graph}: no operator {args.id!r} to start", file=sys.stderr)
         return 1
-    hub = args.connect or graph.spec.hub
-    session = open_client(hub, graph.tls_config(), timeout_s=CONNECT_TIMEOUT_S)
-    if session is None:
-        print(
-            f"no hub at {hub} within {CONNECT_TIMEOUT_S:.0f}s: is the graph running (`umad launch`)?", file=sys.stderr
-        )
+    connected = connect_to_running_graph(graph, args.connect)
+    if connected is None:
         return 1
-    keys = Keys(graph.name)
+    session, live = connected
     try:
-        live = {op for op, _ in live_replicas(session, keys)}
         if not live:
-            print(f"no operator of graph {graph.name!r} is live at {hub}: nothing to {action}", file=sys.stderr)
+            print(f"no operator of graph {graph.name!r} is live: nothing to {action}", file=sys.stderr)
             return 1
         if action == "stop" and args.id not in live:
             print(f"{args.id}: not running in graph {graph.name!r} (live: {sorted(live)})", file=sys.stderr)
             return 1
         graph_file = str(Path(args.graph).resolve())  # the launcher may run in another folder
-        session.put(keys.control("_launcher"), json.dumps({action: args.id, "graph": graph_file}))
+        session.put(Keys(graph.name).control("_launcher"), json.dumps({action: args.id, "graph": graph_file}))
         time.sleep(0.3)
     finally:
         session.close()

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import sys
 
-from umad_common.commands.common import add_graph_argument, load_graph_or_exit
+from umad_common.commands.common import add_connect_argument, add_graph_argument, load_graph_or_exit
 from umad_common.graph import GraphError
 
 
 def add_arguments(parser):
     parser.add_argument("id", help="operator id in the graph")
     add_graph_argument(parser)
-    parser.add_argument("--connect", default=None, help="hub endpoint (default: the graph's `hub`)")
+    add_connect_argument(parser)
     parser.add_argument("--replica", type=int, default=0, help="replica index (distinct per process of one operator)")
     parser.add_argument("--set", action="append", default=[], metavar="OP.PARAM=VALUE")
 

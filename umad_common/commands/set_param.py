@@ -6,20 +6,24 @@ import json
 import sys
 import time
 
-from umad_common.commands.common import add_graph_argument, load_graph_or_exit, parse_sets
+from umad_common.commands.common import (
+    add_connect_argument,
+    add_graph_argument,
+    connect_to_running_graph,
+    load_graph_or_exit,
+    parse_sets,
+)
 from umad_common.graph import GraphError
-
-CONNECT_TIMEOUT_S = 10.0
 
 
 def add_arguments(parser):
     parser.add_argument("assignments", nargs="+", metavar="OP.PARAM=VALUE", help="e.g. fusion.weights.ssim=0.5")
     add_graph_argument(parser)
-    parser.add_argument("--connect", default=None, help="hub endpoint (default: the graph's `hub`)")
+    add_connect_argument(parser)
 
 
 def run(args) -> int:
-    from umad_common.bus import Keys, live_replicas, open_client
+    from umad_common.bus import Keys
 
     graph = load_graph_or_exit(args.graph)
     if graph is None:
@@ -30,17 +34,13 @@ def run(args) -> int:
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return 1
-    hub = args.connect or graph.spec.hub
-    session = open_client(hub, graph.tls_config(), timeout_s=CONNECT_TIMEOUT_S)
-    if session is None:
-        print(
-            f"no hub at {hub} within {CONNECT_TIMEOUT_S:.0f}s: is the graph running (`umad launch`)?", file=sys.stderr
-        )
+    connected = connect_to_running_graph(graph, args.connect)
+    if connected is None:
         return 1
+    session, live = connected
     keys = Keys(graph.name)
     missing = []
     try:
-        live = {op for op, _ in live_replicas(session, keys)}
         for op, params in overrides.items():
             if op not in live:
                 missing.append(op)
