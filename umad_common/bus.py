@@ -32,12 +32,18 @@ class TlsConfig:
 
 
 def zenoh_config(
-    mode: str, listen: list[str] | None = None, connect: list[str] | None = None, tls: TlsConfig | None = None
+    mode: str,
+    listen: list[str] | None = None,
+    connect: list[str] | None = None,
+    tls: TlsConfig | None = None,
+    shared_memory: bool = True,
 ) -> zenoh.Config:
     """The one place every Zenoh config is built."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    if not shared_memory:
+        conf.insert_json5("transport/shared_memory/enabled", "false")
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     if connect:
@@ -64,13 +70,15 @@ def open_client(
     tls: TlsConfig | None = None,
     cancel: threading.Event | None = None,
     timeout_s: float | None = None,
+    shared_memory: bool = True,
 ) -> zenoh.Session | None:
     """A client session connected to the hub at `endpoint`, waiting for the hub as long as it takes.
 
     With `cancel` or `timeout_s`, the wait happens off the main thread so a signal can end it, or
-    it gives up after `timeout_s`: returns None then.
+    it gives up after `timeout_s`: returns None then. `shared_memory=False` for a session that
+    outlives the processes it sweeps up after (the launcher): a segment it maps could never go.
     """
-    conf = zenoh_config("client", connect=[endpoint], tls=tls)
+    conf = zenoh_config("client", connect=[endpoint], tls=tls, shared_memory=shared_memory)
     if cancel is None and timeout_s is None:
         return zenoh.open(conf)
     cancel = cancel or threading.Event()

@@ -57,7 +57,15 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    return int(importlib.import_module(args._module).run(args) or 0)
+    try:
+        return int(importlib.import_module(args._module).run(args) or 0)
+    except (OSError, ValueError, LookupError) as exc:
+        # Bad input (a missing or malformed file, a wrong shape, an unknown name): every such error
+        # names what was wrong and what was expected, so the message is the answer. -v: traceback.
+        if args.verbose:
+            raise
+        print(f"umad {' '.join(args._words)}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -283,7 +283,7 @@ class Launcher:
         if self.start_hub:
             self.hub_replica = Replica("hub", 0, self._hub_command(), False)
             self._spawn(self.hub_replica)
-        hub = open_client(self.hub, tls, cancel=self._stop, timeout_s=HUB_CONNECT_TIMEOUT_S)
+        hub = open_client(self.hub, tls, cancel=self._stop, timeout_s=HUB_CONNECT_TIMEOUT_S, shared_memory=False)
         if hub is None:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
