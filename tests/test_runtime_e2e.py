@@ -75,14 +75,15 @@ def zenoh_segments() -> set[str]:
     return {p.name for p in Path("/dev/shm").glob("*.zenoh")} if Path("/dev/shm").is_dir() else set()
 
 
-def watch_stats(session, wait_for: str) -> tuple[dict[str, dict], object]:
-    """Collect the toy graph's stats by key; returns once `wait_for`'s first replica has reported."""
+def watch_stats(session, *wait_for: str) -> tuple[dict[str, dict], object]:
+    """Collect the toy graph's stats by key; returns once each of `wait_for` has reported (it is
+    subscribed to its inputs then)."""
     stats: dict[str, dict] = {}
     sub = session.declare_subscriber(
         "umad/toy/_stats/**", lambda s: stats.update({str(s.key_expr): json.loads(s.payload.to_bytes())})
     )
     deadline = time.monotonic() + 60
-    while f"umad/toy/_stats/{wait_for}/r0" not in stats and time.monotonic() < deadline:
+    while time.monotonic() < deadline and not all(f"umad/toy/_stats/{op}/r0" in stats for op in wait_for):
         time.sleep(0.1)
     return stats, sub
 
@@ -121,7 +122,7 @@ def test_malformed_payloads_are_counted_and_the_operator_goes_on(tmp_path, hub_e
     proc = start_umad("launch", str(graph))
     session = open_client(hub_endpoint)
     try:
-        stats, sub = watch_stats(session, "triple")
+        stats, sub = watch_stats(session, "triple", "sink")
         pub = session.declare_publisher("umad/toy/source/value", congestion_control=zenoh.CongestionControl.BLOCK)
         for payload in (b"garbage", b"\x80", b"\x81\xa1v\x07"):
             pub.put(payload)

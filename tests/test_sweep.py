@@ -226,6 +226,9 @@ def test_report_files(result, log_and_truth, tmp_path):
     assert table.count("\n| ") == 106 and "**" in table
     best_ap = max(r["AP"] for r in summary["rows"] + [summary["baseline"]])
     assert f"**{100 * best_ap:.2f}**" in table
+    page = (out / "index.html").read_text()  # the page shows the table files' values and marks
+    assert f"<b>{100 * best_ap:.2f}</b>" in page and "<i>" in page and "_mark" not in page
+    assert page.count("<table>") == 3  # ablation, components, per scenario
 
 
 def test_cli(log_and_truth, tmp_path, capsys):

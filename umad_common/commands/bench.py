@@ -1,4 +1,4 @@
-"""`umad bench [bus|metrics|differences|scaling|segmenters|pipeline|all] [--out FILE.json]`.
+"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|all] [--out FILE.json]`.
 
 Each bench measures both sides of its ratio in the same run on the same machine, so the ratio is
 meaningful where the absolute numbers are not. Results are printed as Markdown and, with --out,
@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-BENCHES = ("bus", "metrics", "differences", "scaling", "segmenters", "pipeline")
+BENCHES = ("bus", "metrics", "differences", "predictors", "scaling", "segmenters", "pipeline")
 
 
 def add_arguments(parser):
@@ -54,6 +54,10 @@ def _run_one(name: str, args) -> dict:
         from umad_common.benchmarks.differences import bench_differences
 
         return bench_differences(frames=args.frames or 20)
+    if name == "predictors":
+        from umad_common.benchmarks.predictors import bench_predictors
+
+        return bench_predictors(frames=args.frames or 40)
     if name == "scaling":
         from umad_common.benchmarks.scaling import bench_scaling
 

@@ -11,6 +11,7 @@ import csv
 import html
 import json
 import math
+import re
 from fractions import Fraction
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -275,13 +276,35 @@ def _index_markdown(
     return "\n".join(parts) + "\n"
 
 
+def markdown_tables_html(text: str) -> str:
+    """The report's Markdown (pipe tables, **best**, _second_, plain lines) as HTML, so the page
+    shows exactly the table files' values and marks."""
+
+    def cell(c: str, tag: str) -> str:
+        c = html.escape(c.strip())
+        c = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", c)
+        c = re.sub(r"(?<![\w])_(.+?)_(?![\w])", r"<i>\1</i>", c)
+        return f"<{tag}>{c}</{tag}>"
+
+    parts, rows = [], []
+    for line in [*text.splitlines(), ""]:
+        if line.startswith("|"):
+            if not set(line) <= set("|-: "):
+                rows.append(line.strip().strip("|").split("|"))
+            continue
+        if rows:
+            head = "".join(cell(c, "th") for c in rows[0])
+            body = "".join("<tr>" + "".join(cell(c, "td") for c in r) + "</tr>" for r in rows[1:])
+            parts.append(f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")
+            rows = []
+        if line.strip():
+            parts.append(f"<p>{cell(line, 'span')}</p>")
+    return "".join(parts)
+
+
 def _index_html(summary: dict[str, Any], out: Path, overlays: list[tuple[str, str]]) -> str:
-    def table_html(csv_path: Path) -> str:
-        with open(csv_path, newline="") as f:
-            rows = list(csv.reader(f))
-        head = "".join(f"<th>{html.escape(c)}</th>" for c in rows[0])
-        body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows[1:])
-        return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+    def tables(name: str) -> str:
+        return markdown_tables_html((out / name).read_text())
 
     items = "".join(f"<li>{html.escape(line[2:])}</li>" for line in _log_lines(summary))
     pictures = "".join(f"<h3>{html.escape(t)}</h3><img src='{n}' alt='{html.escape(t)}'>" for n, t in overlays)
@@ -290,9 +313,9 @@ def _index_html(summary: dict[str, Any], out: Path, overlays: list[tuple[str, st
         "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:12px}"
         "td,th{border:1px solid #ccc;padding:2px 6px}img{max-width:100%}</style></head><body>"
         f"<h1>UMAD evaluation report</h1><ul>{items}</ul>"
-        f"<h2>Ablation table</h2>{table_html(out / 'table.csv')}"
-        f"<h2>Component metrics (SegmentMeIfYouCan)</h2><pre>{html.escape((out / 'components.md').read_text())}</pre>"
+        f"<h2>Ablation table</h2>{tables('table.md')}"
+        f"<h2>Component metrics (SegmentMeIfYouCan)</h2>{tables('components.md')}"
         "<h2>Curves</h2><img src='pr_curves.png' alt='precision-recall'><img src='roc_curves.png' alt='ROC'>"
-        f"<h2>Per scenario (default weights)</h2>{table_html(out / 'per_scenario.csv')}"
+        f"<h2>Per scenario (default weights)</h2>{tables('per_scenario.md')}"
         f"<h2>Frames with the largest anomalies</h2>{pictures}</body></html>\n"
     )

@@ -1,0 +1,33 @@
+"""`umad bench`: the in-process benches run from the command line and report both sides of each ratio."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from umad_common.cli import main as umad_main
+
+
+def test_metrics_bench_agrees_with_scikit_learn(tmp_path):
+    out = tmp_path / "bench.json"
+    assert umad_main(["bench", "metrics", "--pixels", "200000", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())["metrics"]
+    assert result["max_abs_difference"] < 1e-9
+    assert result["umad"]["AP"] == pytest.approx(result["sklearn"]["AP"], abs=1e-9)
+    assert result["speedup"] > 0 and result["memory_ratio"] > 0
+    assert "| metrics | speedup |" in out.with_suffix(".md").read_text()
+
+
+def test_differences_and_predictors_benches_measure_every_metric_and_both_models(tmp_path):
+    out = tmp_path / "bench.json"
+    assert umad_main(["bench", "differences", "--frames", "2", "--out", str(out)]) == 0
+    differences = json.loads(out.read_text())["differences"]
+    assert set(differences["fps"]) == {"abs", "mse", "ssim", "perceptual", "temporal"}
+    assert differences["fps_ratio_to_abs"]["abs"] == 1.0
+    assert all(v > 0 for v in differences["fps"].values())
+
+    assert umad_main(["bench", "predictors", "--frames", "6", "--out", str(out)]) == 0
+    predictors = json.loads(out.read_text())["predictors"]
+    assert predictors["frames"] == 6
+    assert all(predictors[f"threads_{n}"][k] > 0 for n in (1, 2) for k in ("world_model_fps", "mnad_fps"))
