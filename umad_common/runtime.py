@@ -3,6 +3,8 @@
 It owns everything an operator module should not have to write: the Zenoh session, joining inputs by
 `(run, seq)`, in-order delivery, the replica split, the output cache that answers retransmissions,
 end-to-end acks, end-of-run markers, stats, runtime parameter changes, and a clean shutdown.
+Its data structures (joiner, membership, output cache, stats) are in `delivery.py`; how a source
+paces, re-sends and closes runs is in `source_driver.py`.
 
 Delivery protocol (lossless by design):
   - a source keeps at most `window` frames in flight and forgets a frame once every sink of the
@@ -26,205 +28,28 @@ import queue
 import sys
 import threading
 import time
-from collections import OrderedDict, defaultdict, deque
-from dataclasses import dataclass, field
+from collections import defaultdict
 from typing import Any
 
 import msgpack
-import numpy as np
 import zenoh
 from pydantic import ValidationError
 
 from replay.log import LogError
 from umad_common.bus import Keys, ShutdownSignal, close_session, open_client
+from umad_common.delivery import FrameJoiner, Membership, OutputCache, Stats
 from umad_common.graph import Graph, GraphError, load_graph, merge_params, parse_assignment
 from umad_common.messages import Message, MessageError, decode, encode
-from umad_common.operator import Context, Frame, Operator, Output, Source, SourceFrame
+from umad_common.operator import Context, Frame, Operator, Output, Source
+from umad_common.source_driver import SourceDriver
 
 log = logging.getLogger("umad.runtime")
 
-OUTPUT_CACHE_FRAMES = 64
-MAX_PENDING_FRAMES = 256
-REPUBLISH_INTERVAL_S = 1.0
 STATS_INTERVAL_S = 1.0
 BAD_MESSAGE_LOG_FIRST = 10  # malformed messages logged one by one; later ones are summarised
 BAD_MESSAGE_LOG_INTERVAL_S = 5.0
-LIVE_WAIT_S = 60.0
-LOST_GRACE_S = 15.0
 REWIND_RETRY_S = 10.0
 EXIT_CONFIG = 3  # an operator that exits with this failed on its configuration: restarting cannot help
-
-
-class LatencyWindow:
-    """The last N latencies, for p50/p99 in stats."""
-
-    def __init__(self, size: int = 1000):
-        self.values: deque[float] = deque(maxlen=size)
-
-    def add(self, seconds: float) -> None:
-        self.values.append(seconds)
-
-    def percentiles_ms(self) -> dict[str, float | None]:
-        if not self.values:
-            return {"p50_ms": None, "p99_ms": None}
-        arr = np.fromiter(self.values, dtype=np.float64) * 1e3
-        return {"p50_ms": float(np.percentile(arr, 50)), "p99_ms": float(np.percentile(arr, 99))}
-
-
-@dataclass
-class Stats:
-    frames_in: int = 0
-    frames_out: int = 0
-    errors: int = 0
-    bad_messages: int = 0
-    duplicates: int = 0
-    dropped: int = 0
-    retransmits: int = 0
-    param_changes: int = 0
-    busy_s: float = 0.0  # sources: first send to last ack
-    acked: int = 0  # sources: frames every sink has acked
-    total_frames: int | None = None  # sources: frames the stream will have, when known
-    latency: LatencyWindow = field(default_factory=LatencyWindow)
-
-    def snapshot(self, queue_depth: int) -> dict[str, Any]:
-        d = {k: v for k, v in self.__dict__.items() if k != "latency"}
-        return {**d, **self.latency.percentiles_ms(), "queue_depth": queue_depth}
-
-
-@dataclass
-class _Pending:
-    first_seen: float
-    stamp_ns: int
-    single: dict[str, Message] = field(default_factory=dict)
-    many: dict[str, dict[str, Message]] = field(default_factory=lambda: defaultdict(dict))
-
-
-class FrameJoiner:
-    """Collects the inputs of each `(run, seq)` and hands out complete frames.
-
-    A frame is complete when every single port has its message and every `many` port has a message
-    from each producer expected right now (the live operators matching its wildcard). With a
-    deadline, a frame that waited longer is handed out as partial. At most `max_pending` frames
-    wait; beyond that the oldest is dropped and counted (the source's retransmission recovers it).
-    """
-
-    def __init__(self, single_ports: list[str], many_ports: list[str], max_pending: int = MAX_PENDING_FRAMES):
-        self.single_ports = single_ports
-        self.many_ports = many_ports
-        self.max_pending = max_pending
-        self.pending: OrderedDict[tuple[str, int], _Pending] = OrderedDict()
-        self.dropped = 0
-
-    def add(self, port: str, producer: str, msg: Message) -> None:
-        key = (msg.run, msg.seq)
-        entry = self.pending.get(key)
-        if entry is None:
-            entry = self.pending[key] = _Pending(time.monotonic(), msg.stamp_ns)
-            if len(self.pending) > self.max_pending:
-                self.pending.popitem(last=False)
-                self.dropped += 1
-        if port in self.many_ports:
-            entry.many[port][producer] = msg
-        else:
-            entry.single[port] = msg
-
-    def discard(self, key: tuple[str, int]) -> None:
-        self.pending.pop(key, None)
-
-    def pop_ready(self, expected: dict[str, set[str]], deadline_s: float = 0.0) -> list[Frame]:
-        now = time.monotonic()
-        ready = []
-        for key, entry in list(self.pending.items()):
-            if len(entry.single) < len(self.single_ports):
-                continue
-            complete = all(entry.many[p] and expected.get(p, set()) <= set(entry.many[p]) for p in self.many_ports)
-            late = (
-                deadline_s > 0 and now - entry.first_seen > deadline_s and all(entry.many[p] for p in self.many_ports)
-            )
-            if complete or late:
-                del self.pending[key]
-                ready.append(
-                    Frame(
-                        run=key[0],
-                        seq=key[1],
-                        stamp_ns=entry.stamp_ns,
-                        inputs=dict(entry.single),
-                        many={p: dict(entry.many[p]) for p in self.many_ports},
-                        partial=not complete,
-                    )
-                )
-        return ready
-
-
-class Membership:
-    """Which replicas of which operators are in the graph now, from liveliness tokens.
-
-    A token that vanishes without a goodbye (a crash, or the hub restarting under everyone) is kept
-    for `grace_s`: waiting a little for a restarted replica beats completing frames without its
-    output. A replica that stops on purpose says so on the `_left` key first and drops out at once.
-    """
-
-    def __init__(self, grace_s: float = LOST_GRACE_S):
-        self.grace_s = grace_s
-        self.live: dict[str, set[str]] = defaultdict(set)
-        self.lost: dict[tuple[str, str], float] = {}
-        self.left: set[tuple[str, str]] = set()
-
-    def put(self, op: str, rep: str) -> None:
-        self.live[op].add(rep)
-        self.lost.pop((op, rep), None)
-        self.left.discard((op, rep))
-
-    def delete(self, op: str, rep: str) -> None:
-        self.live[op].discard(rep)
-        if (op, rep) in self.left:
-            self.left.discard((op, rep))
-        else:
-            self.lost[(op, rep)] = time.monotonic()
-
-    def leave(self, op: str, rep: str) -> None:
-        if self.lost.pop((op, rep), None) is None:
-            self.left.add((op, rep))
-
-    def expire(self) -> bool:
-        """Forget replicas lost longer than the grace period; True if any was forgotten."""
-        now = time.monotonic()
-        gone = [k for k, t in self.lost.items() if now - t > self.grace_s]
-        for k in gone:
-            del self.lost[k]
-        return bool(gone)
-
-    def replicas(self, op: str) -> set[str]:
-        return self.live.get(op, set()) | {rep for (o, rep) in self.lost if o == op}
-
-    def ops(self) -> set[str]:
-        return {op for op, reps in self.live.items() if reps} | {op for op, _ in self.lost}
-
-
-class OutputCache:
-    """Recent outputs by `(run, seq)`: a duplicate input re-publishes these bytes, never recomputes."""
-
-    def __init__(self, size: int = OUTPUT_CACHE_FRAMES):
-        self.size = size
-        self.entries: OrderedDict[tuple[str, int], list[tuple[str, bytes]]] = OrderedDict()
-        self.last_republish: dict[tuple[str, int], float] = {}
-
-    def __contains__(self, key: tuple[str, int]) -> bool:
-        return key in self.entries
-
-    def put(self, key: tuple[str, int], payloads: list[tuple[str, bytes]]) -> None:
-        self.entries[key] = payloads
-        while len(self.entries) > self.size:
-            old, _ = self.entries.popitem(last=False)
-            self.last_republish.pop(old, None)
-
-    def due_for_republish(self, key: tuple[str, int]) -> list[tuple[str, bytes]]:
-        """The cached payloads, at most once per REPUBLISH_INTERVAL_S per frame (one duplicate per port arrives)."""
-        now = time.monotonic()
-        if now - self.last_republish.get(key, 0.0) < REPUBLISH_INTERVAL_S:
-            return []
-        self.last_republish[key] = now
-        return self.entries[key]
 
 
 class OperatorRuntime:
@@ -599,174 +424,6 @@ class OperatorRuntime:
                 while next_seq[frame.run] in in_order[frame.run]:
                     finish(in_order[frame.run].pop(next_seq[frame.run]))
                     next_seq[frame.run] += 1
-
-
-class SourceDriver:
-    """Paces a Source: window of un-acked frames, retransmission on timeout, end-of-run markers.
-
-    `lossless` pacing keeps at most `window` frames un-acked and re-sends a frame not acked in time.
-    `realtime` pacing publishes at `rate_hz` whatever the acks say and never re-sends (a late frame
-    of a live sensor is worthless), yet it still collects acks: a run's end-of-run marker goes out
-    only once its frames are acked or have timed out, so no sink closes a run before its last frame.
-    """
-
-    def __init__(self, rt: OperatorRuntime):
-        self.rt = rt
-        self.source: Source = rt.operator  # type: ignore[assignment]
-        params = self.source.params
-        self.window = int(getattr(params, "window", 8))
-        self.realtime = getattr(params, "pacing", "lossless") == "realtime"
-        self.rate_hz = float(getattr(params, "rate_hz", 10.0))
-        self.ack_timeout_s = float(getattr(params, "ack_timeout_s", 15.0))
-        self.sinks = set(rt.graph.sinks())
-        self.acks: dict[tuple[str, int], set[str]] = defaultdict(set)
-        self.ack_q: queue.Queue = queue.Queue()
-        self.inflight: dict[tuple[str, int], tuple[list[tuple[str, bytes]], float, float]] = {}
-        self.e2e = LatencyWindow()
-        self.markers: set[tuple[str, int]] = set()  # end-of-run keys, which are not frames
-
-    def run(self) -> None:
-        rt = self.rt
-        rt._subscribers.append(
-            rt.session.declare_subscriber(rt.keys.ack, lambda s: self.ack_q.put(s.payload.to_bytes()))
-        )
-        self._wait_for_graph()
-        rt.stats.total_frames = self.source.total_frames()
-        if rt.max_frames is not None and rt.stats.total_frames is not None:
-            rt.stats.total_frames = min(rt.stats.total_frames, rt.max_frames)
-        sent = 0
-        current: str | None = None
-        count = 0
-        last_stamp = 0
-        next_due = started = time.monotonic()
-        for sf in self.source.frames():
-            if rt.shutdown.is_set() or (rt.max_frames is not None and sent >= rt.max_frames):
-                break
-            if current is not None and sf.run != current:
-                self._end_run(current, count, last_stamp)
-                count = 0
-            current = sf.run
-            if self.realtime:
-                next_due += 1.0 / self.rate_hz
-                while time.monotonic() < next_due and not rt.shutdown.is_set():
-                    self._service(min(0.01, max(0.0, next_due - time.monotonic())))
-            else:
-                while len(self.inflight) >= self.window and not rt.shutdown.is_set():
-                    self._service(0.01)
-            self._send((sf.run, sf.seq), self._payloads(sf))
-            sent += 1
-            count += 1
-            last_stamp = sf.stamp_ns
-        if current is not None and not rt.shutdown.is_set():
-            self._end_run(current, count, last_stamp)
-        rt.stats.busy_s = time.monotonic() - started
-        rt._publish_stats(force=True)
-        rt.log.info("source finished: %d frames sent, %d retransmits", sent, rt.stats.retransmits)
-
-    def _wait_for_graph(self) -> None:
-        """Frames sent before every operator subscribed would be lost to them: wait for all tokens."""
-        wanted = {op.id for op in self.rt.graph.spec.operators}
-        deadline = time.monotonic() + LIVE_WAIT_S
-        while not self.rt.shutdown.is_set():
-            self.rt._handle_service()
-            missing = wanted - self.rt.members.ops()
-            if not missing:
-                time.sleep(0.2)  # let liveliness-triggered subscriptions settle at the hub
-                return
-            if time.monotonic() > deadline:
-                self.rt.log.warning("starting although operators are not live: %s", sorted(missing))
-                return
-            time.sleep(0.05)
-
-    def _payloads(self, sf: SourceFrame) -> list[tuple[str, bytes]]:
-        """A source frame's messages: recorded bytes as they are, or its outputs encoded."""
-        if sf.raw:
-            return list(sf.raw.items())
-        return self.rt._encode_outputs(sf.run, sf.seq, sf.stamp_ns, sf.outputs, {})
-
-    def _send(self, key: tuple[str, int], payloads: list[tuple[str, bytes]]) -> None:
-        now = time.monotonic()
-        self.rt._publish(payloads)
-        if self.sinks:
-            self.inflight[key] = (payloads, now, now)
-
-    def _service(self, timeout: float) -> None:
-        """Take acks, retransmit what timed out, answer resend requests, publish stats."""
-        rt = self.rt
-        rt._handle_service()
-        rt._publish_stats()
-        while rt.resend_requests:
-            self._resend(rt.resend_requests.pop(0))
-        try:
-            raw = self.ack_q.get(timeout=timeout)
-        except queue.Empty:
-            raw = None
-        while raw is not None:
-            try:
-                ack = msgpack.unpackb(raw)
-                key = (str(ack["run"]), int(ack["seq"]))
-                op = str(ack["op"])
-            except Exception:
-                rt.stats.bad_messages += 1
-            else:
-                if key in self.inflight and op in self.sinks:
-                    self.acks[key].add(op)
-                    if self.sinks <= self.acks[key]:
-                        first_sent = self.inflight.pop(key)[1]
-                        self.acks.pop(key)
-                        if key not in self.markers:
-                            rt.stats.acked += 1
-                        self.e2e.add(time.monotonic() - first_sent)
-                        rt.stats.latency.add(time.monotonic() - first_sent)
-            try:
-                raw = self.ack_q.get_nowait()
-            except queue.Empty:
-                raw = None
-        now = time.monotonic()
-        timeout_s = max(self.ack_timeout_s, 3 * (self.e2e.percentiles_ms()["p99_ms"] or 0) / 1e3)
-        for key, (payloads, first, last) in list(self.inflight.items()):
-            if now - last > timeout_s and self.realtime:
-                rt.log.warning(
-                    "frame %s#%d not acked after %.1fs: given up (realtime pacing)", key[0], key[1], now - last
-                )
-                self.inflight.pop(key)
-                self.acks.pop(key, None)
-            elif now - last > timeout_s:
-                rt.log.warning("frame %s#%d not acked after %.1fs: re-sending", key[0], key[1], now - last)
-                rt.stats.retransmits += 1
-                for port, payload in payloads:
-                    rt.publishers[port].put(payload)
-                self.inflight[key] = (payloads, first, now)
-
-    def _resend(self, request: dict) -> None:
-        """Publish frames [from, to) of a run again, byte for byte, for a restarted ordered operator."""
-        rt = self.rt
-        try:
-            run, first, last = str(request["run"]), int(request["from"]), int(request["to"])
-            for seq in range(first, last):
-                rt._publish(self._payloads(self.source.frame_at(run, seq)))
-        except NotImplementedError:
-            rt.log.error(
-                "%s cannot resend frames (no frame_at); %s must start its run over", rt.op_id, request.get("for")
-            )
-            return
-        except (KeyError, ValueError, TypeError, IndexError) as exc:
-            rt.stats.errors += 1
-            rt.log.error("bad resend request %r: %s", request, exc)
-            return
-        rt.log.info("resent %s#%d..%d for %s", run, first, last - 1, request.get("for"))
-
-    def _end_run(self, run: str, frames: int, stamp_ns: int) -> None:
-        """Drain the run's frames, then send its end-of-run marker until every sink acked it."""
-        rt = self.rt
-        while self.inflight and not rt.shutdown.is_set():
-            self._service(0.01)
-        markers = rt._markers(run, frames, stamp_ns, {"eos": True, "frames": frames})
-        self.markers.add((run, frames))
-        self._send((run, frames), markers)
-        while self.inflight and not rt.shutdown.is_set():
-            self._service(0.01)
-        rt.log.info("run %s: %d frames", run, frames)
 
 
 def run_operator(

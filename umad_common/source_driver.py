@@ -1,0 +1,187 @@
+"""The source driver: how a graph's source paces its frames (window of un-acked frames, or a fixed
+rate), re-sends what was not acked, answers a restarted ordered operator's rewind, and closes runs."""
+
+from __future__ import annotations
+
+import queue
+import time
+from collections import defaultdict
+from typing import TYPE_CHECKING
+
+import msgpack
+
+from umad_common.delivery import LatencyWindow
+from umad_common.operator import Source, SourceFrame
+
+if TYPE_CHECKING:
+    from umad_common.runtime import OperatorRuntime
+
+LIVE_WAIT_S = 60.0
+
+
+class SourceDriver:
+    """Paces a Source: window of un-acked frames, retransmission on timeout, end-of-run markers.
+
+    `lossless` pacing keeps at most `window` frames un-acked and re-sends a frame not acked in time.
+    `realtime` pacing publishes at `rate_hz` whatever the acks say and never re-sends (a late frame
+    of a live sensor is worthless), yet it still collects acks: a run's end-of-run marker goes out
+    only once its frames are acked or have timed out, so no sink closes a run before its last frame.
+    """
+
+    def __init__(self, rt: OperatorRuntime):
+        self.rt = rt
+        self.source: Source = rt.operator  # type: ignore[assignment]
+        params = self.source.params
+        self.window = int(getattr(params, "window", 8))
+        self.realtime = getattr(params, "pacing", "lossless") == "realtime"
+        self.rate_hz = float(getattr(params, "rate_hz", 10.0))
+        self.ack_timeout_s = float(getattr(params, "ack_timeout_s", 15.0))
+        self.sinks = set(rt.graph.sinks())
+        self.acks: dict[tuple[str, int], set[str]] = defaultdict(set)
+        self.ack_q: queue.Queue = queue.Queue()
+        self.inflight: dict[tuple[str, int], tuple[list[tuple[str, bytes]], float, float]] = {}
+        self.e2e = LatencyWindow()
+        self.markers: set[tuple[str, int]] = set()  # end-of-run keys, which are not frames
+
+    def run(self) -> None:
+        rt = self.rt
+        rt._subscribers.append(
+            rt.session.declare_subscriber(rt.keys.ack, lambda s: self.ack_q.put(s.payload.to_bytes()))
+        )
+        self._wait_for_graph()
+        rt.stats.total_frames = self.source.total_frames()
+        if rt.max_frames is not None and rt.stats.total_frames is not None:
+            rt.stats.total_frames = min(rt.stats.total_frames, rt.max_frames)
+        sent = 0
+        current: str | None = None
+        count = 0
+        last_stamp = 0
+        next_due = started = time.monotonic()
+        for sf in self.source.frames():
+            if rt.shutdown.is_set() or (rt.max_frames is not None and sent >= rt.max_frames):
+                break
+            if current is not None and sf.run != current:
+                self._end_run(current, count, last_stamp)
+                count = 0
+            current = sf.run
+            if self.realtime:
+                next_due += 1.0 / self.rate_hz
+                while time.monotonic() < next_due and not rt.shutdown.is_set():
+                    self._service(min(0.01, max(0.0, next_due - time.monotonic())))
+            else:
+                while len(self.inflight) >= self.window and not rt.shutdown.is_set():
+                    self._service(0.01)
+            self._send((sf.run, sf.seq), self._payloads(sf))
+            sent += 1
+            count += 1
+            last_stamp = sf.stamp_ns
+        if current is not None and not rt.shutdown.is_set():
+            self._end_run(current, count, last_stamp)
+        rt.stats.busy_s = time.monotonic() - started
+        rt._publish_stats(force=True)
+        rt.log.info("source finished: %d frames sent, %d retransmits", sent, rt.stats.retransmits)
+
+    def _wait_for_graph(self) -> None:
+        """Frames sent before every operator subscribed would be lost to them: wait for all tokens."""
+        wanted = {op.id for op in self.rt.graph.spec.operators}
+        deadline = time.monotonic() + LIVE_WAIT_S
+        while not self.rt.shutdown.is_set():
+            self.rt._handle_service()
+            missing = wanted - self.rt.members.ops()
+            if not missing:
+                time.sleep(0.2)  # let liveliness-triggered subscriptions settle at the hub
+                return
+            if time.monotonic() > deadline:
+                self.rt.log.warning("starting although operators are not live: %s", sorted(missing))
+                return
+            time.sleep(0.05)
+
+    def _payloads(self, sf: SourceFrame) -> list[tuple[str, bytes]]:
+        """A source frame's messages: recorded bytes as they are, or its outputs encoded."""
+        if sf.raw:
+            return list(sf.raw.items())
+        return self.rt._encode_outputs(sf.run, sf.seq, sf.stamp_ns, sf.outputs, {})
+
+    def _send(self, key: tuple[str, int], payloads: list[tuple[str, bytes]]) -> None:
+        now = time.monotonic()
+        self.rt._publish(payloads)
+        if self.sinks:
+            self.inflight[key] = (payloads, now, now)
+
+    def _service(self, timeout: float) -> None:
+        """Take acks, retransmit what timed out, answer resend requests, publish stats."""
+        rt = self.rt
+        rt._handle_service()
+        rt._publish_stats()
+        while rt.resend_requests:
+            self._resend(rt.resend_requests.pop(0))
+        try:
+            raw = self.ack_q.get(timeout=timeout)
+        except queue.Empty:
+            raw = None
+        while raw is not None:
+            try:
+                ack = msgpack.unpackb(raw)
+                key = (str(ack["run"]), int(ack["seq"]))
+                op = str(ack["op"])
+            except Exception:
+                rt.stats.bad_messages += 1
+            else:
+                if key in self.inflight and op in self.sinks:
+                    self.acks[key].add(op)
+                    if self.sinks <= self.acks[key]:
+                        first_sent = self.inflight.pop(key)[1]
+                        self.acks.pop(key)
+                        if key not in self.markers:
+                            rt.stats.acked += 1
+                        self.e2e.add(time.monotonic() - first_sent)
+                        rt.stats.latency.add(time.monotonic() - first_sent)
+            try:
+                raw = self.ack_q.get_nowait()
+            except queue.Empty:
+                raw = None
+        now = time.monotonic()
+        timeout_s = max(self.ack_timeout_s, 3 * (self.e2e.percentiles_ms()["p99_ms"] or 0) / 1e3)
+        for key, (payloads, first, last) in list(self.inflight.items()):
+            if now - last > timeout_s and self.realtime:
+                rt.log.warning(
+                    "frame %s#%d not acked after %.1fs: given up (realtime pacing)", key[0], key[1], now - last
+                )
+                self.inflight.pop(key)
+                self.acks.pop(key, None)
+            elif now - last > timeout_s:
+                rt.log.warning("frame %s#%d not acked after %.1fs: re-sending", key[0], key[1], now - last)
+                rt.stats.retransmits += 1
+                for port, payload in payloads:
+                    rt.publishers[port].put(payload)
+                self.inflight[key] = (payloads, first, now)
+
+    def _resend(self, request: dict) -> None:
+        """Publish frames [from, to) of a run again, byte for byte, for a restarted ordered operator."""
+        rt = self.rt
+        try:
+            run, first, last = str(request["run"]), int(request["from"]), int(request["to"])
+            for seq in range(first, last):
+                rt._publish(self._payloads(self.source.frame_at(run, seq)))
+        except NotImplementedError:
+            rt.log.error(
+                "%s cannot resend frames (no frame_at); %s must start its run over", rt.op_id, request.get("for")
+            )
+            return
+        except (KeyError, ValueError, TypeError, IndexError) as exc:
+            rt.stats.errors += 1
+            rt.log.error("bad resend request %r: %s", request, exc)
+            return
+        rt.log.info("resent %s#%d..%d for %s", run, first, last - 1, request.get("for"))
+
+    def _end_run(self, run: str, frames: int, stamp_ns: int) -> None:
+        """Drain the run's frames, then send its end-of-run marker until every sink acked it."""
+        rt = self.rt
+        while self.inflight and not rt.shutdown.is_set():
+            self._service(0.01)
+        markers = rt._markers(run, frames, stamp_ns, {"eos": True, "frames": frames})
+        self.markers.add((run, frames))
+        self._send((run, frames), markers)
+        while self.inflight and not rt.shutdown.is_set():
+            self._service(0.01)
+        rt.log.info("run %s: %d frames", run, frames)
