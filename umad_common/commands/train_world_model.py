@@ -25,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads (results depend on it)")
     parser.add_argument("--batch-size", type=int, default=None, help="windows per step (default from TrainConfig)")
-    parser.add_argument("--sequence-length", type=int, default=None, help="model steps per window (default 12)")
+    parser.add_argument("--sequence-length", type=int, default=None, help="model steps per window (default 8)")
     parser.add_argument(
         "--holdout", type=int, default=None, help="last N normal drives kept out for evaluation (default 1)"
     )
