@@ -97,3 +97,14 @@ def test_missing_file_and_bad_yaml(tmp_path):
     (tmp_path / "bad.yaml").write_text("operators: [")
     with pytest.raises(GraphError, match="not valid YAML"):
         load_graph(tmp_path / "bad.yaml")
+
+
+def test_check_names_missing_interpreters_and_tls_files_but_workers_load_the_graph(tmp_path):
+    data = graph(SOURCE, {**SCALE, "python": "nowhere/bin/python"}, SINK, tls={"root_ca": "ca.pem"})
+    path = tmp_path / "g.yaml"
+    path.write_text(yaml.safe_dump(data))
+    load_graph(path)  # a worker elsewhere needs neither the other environment nor this machine's files
+    result = run_umad("graph", "check", str(path))
+    assert result.returncode == 1
+    assert f"python interpreter {tmp_path / 'nowhere/bin/python'} not found" in result.stderr
+    assert f"tls.root_ca: {tmp_path / 'ca.pem'} not found" in result.stderr

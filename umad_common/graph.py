@@ -255,6 +255,26 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
     return graph
 
 
+def missing_local_files(graph: Graph) -> list[str]:
+    """What a launcher on this machine would miss: operators' `python:` interpreters and TLS files.
+    Not part of `validate_graph`, because a worker on another machine loads the same graph without
+    the other operators' environments."""
+    problems = []
+    for op in graph.spec.operators:
+        if op.python:
+            path = Path(op.python) if Path(op.python).is_absolute() else graph.base_dir / op.python
+            if not path.is_file():
+                problems.append(
+                    f"operator {op.id!r}: python interpreter {path} not found (build its environment first)"
+                )
+    tls = graph.tls_config()
+    for name in ("root_ca", "cert", "key"):
+        path = getattr(tls, name) if tls else None
+        if path and not Path(path).is_file():
+            problems.append(f"tls.{name}: {path} not found; expected a PEM file")
+    return problems
+
+
 def _find_cycle(graph: Graph) -> list[str] | None:
     edges = {op.id: [c for c in graph.consumers(op.id)] for op in graph.spec.operators}
     state: dict[str, int] = {}

@@ -8,7 +8,7 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from umad_common.graph import Graph, GraphError, load_graph, parse_assignment
+from umad_common.graph import Graph, GraphError, load_graph, missing_local_files, parse_assignment
 
 DEFAULT_GRAPH = Path(__file__).resolve().parents[2] / "graph.yaml"
 CONNECT_TIMEOUT_S = 10.0  # how long `umad set` / `umad op` wait for a running graph's hub
@@ -31,12 +31,17 @@ def parse_sets(sets: list[str]) -> dict[str, dict[str, Any]]:
     return dict(overrides)
 
 
-def load_graph_or_exit(path: str, sets: list[str] | None = None) -> Graph | None:
-    """The validated graph with `--set` overrides applied, or None after printing every problem."""
+def load_graph_or_exit(path: str, sets: list[str] | None = None, local: bool = False) -> Graph | None:
+    """The validated graph with `--set` overrides applied, or None after printing every problem.
+    `local`: the whole graph runs here, so also check the interpreters and TLS files it names."""
     try:
         graph = load_graph(path)
         overrides = parse_sets(sets or [])
-        return graph.with_params(overrides) if overrides else graph
+        graph = graph.with_params(overrides) if overrides else graph
+        problems = missing_local_files(graph) if local else []
+        if problems:
+            raise GraphError([f"{path}: {p}" for p in problems])
+        return graph
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return None

@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
 
     graph_file = out / "graph.yaml"
     graph_file.write_text(yaml.safe_dump(_eval_graph(args, source), sort_keys=False))
-    graph = load_graph_or_exit(str(graph_file), args.set)
+    graph = load_graph_or_exit(str(graph_file), args.set, local=True)
     if graph is None:
         return 1
     record = out / "run.mcap"

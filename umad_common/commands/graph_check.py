@@ -10,7 +10,7 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    graph = load_graph_or_exit(args.graph)
+    graph = load_graph_or_exit(args.graph, local=True)
     if graph is None:
         return 1
     ops = graph.spec.operators

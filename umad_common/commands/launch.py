@@ -18,7 +18,7 @@ def add_arguments(parser):
 def run(args) -> int:
     from umad_common.launcher import Launcher
 
-    graph = load_graph_or_exit(args.graph, args.set)
+    graph = load_graph_or_exit(args.graph, args.set, local=True)
     if graph is None:
         return 1
     return Launcher(graph, Path(args.graph), args.set, args.record, args.max_frames, args.hub).run()
