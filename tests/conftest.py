@@ -6,6 +6,7 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -36,6 +37,23 @@ def start_umad(*args: str) -> subprocess.Popen:
     return subprocess.Popen(
         [*UMAD, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=umad_env(), cwd=REPO
     )
+
+
+class DrainedUmad:
+    """`umad ...` started as a user would, its output read as it comes: a pipe nobody reads fills
+    up and stalls the launcher, and with it every operator whose log lines it forwards."""
+
+    def __init__(self, *args: str):
+        self.proc = start_umad(*args)
+        self.lines: list[str] = []
+        self.reader = threading.Thread(target=lambda: self.lines.extend(self.proc.stdout), daemon=True)
+        self.reader.start()
+
+    def wait(self, timeout: float) -> str:
+        """Wait for the exit; returns everything it printed."""
+        self.proc.wait(timeout=timeout)
+        self.reader.join(timeout=10)
+        return "".join(self.lines)
 
 
 @pytest.fixture

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import re
-import threading
 import time
 
 import msgpack
@@ -17,7 +16,7 @@ import pytest
 import yaml
 import zenoh
 
-from tests.conftest import REPO, start_umad
+from tests.conftest import REPO, DrainedUmad
 from umad_common.bus import Keys, open_client
 from umad_common.graph import load_graph
 from umad_common.messages import Message, encode
@@ -86,10 +85,7 @@ def test_ten_thousand_malformed_messages_crash_nothing_and_are_all_counted(tmp_p
     )
 
     stats: dict[str, dict] = {}
-    proc = start_umad("launch", str(graph_file))
-    lines: list[str] = []  # drained as it comes: a full pipe would stall the launcher and every operator
-    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
-    reader.start()
+    launch = DrainedUmad("launch", str(graph_file))
     session = open_client(hub)
     try:
         sub = session.declare_subscriber(
@@ -129,10 +125,8 @@ def test_ten_thousand_malformed_messages_crash_nothing_and_are_all_counted(tmp_p
         sub.undeclare()
     finally:
         session.close()
-    proc.wait(timeout=600)
-    reader.join(timeout=10)
-    out = "".join(lines)
-    assert proc.returncode == 0, out[-5000:]
+    out = launch.wait(timeout=600)
+    assert launch.proc.returncode == 0, out[-5000:]
     assert sum(sent.values()) == N_PAYLOADS
     assert counted == {op: n for op, n in expected.items() if n}
     assert "restart" not in out  # no operator crashed

@@ -8,14 +8,13 @@ import json
 import os
 import signal
 import subprocess
-import threading
 import time
 from pathlib import Path
 
 import pytest
 import yaml
 
-from tests.conftest import REPO, free_port, start_umad
+from tests.conftest import REPO, DrainedUmad, free_port
 from umad_common.bus import open_client
 
 pytestmark = pytest.mark.slow
@@ -39,10 +38,7 @@ def run_graph(graph: Path, kill_after: dict[str, int]) -> tuple[str, set[str]]:
     """Launch; SIGKILL operator OP once its stats report `kill_after[OP]` frames in. Returns the output
     and the operators killed."""
     hub = yaml.safe_load(graph.read_text())["hub"]
-    proc = start_umad("launch", str(graph))
-    lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
-    reader.start()
+    launch = DrainedUmad("launch", str(graph))
     killed: set[str] = set()
     session = open_client(hub)
     try:
@@ -52,7 +48,7 @@ def run_graph(graph: Path, kill_after: dict[str, int]) -> tuple[str, set[str]]:
             lambda s: frames_in.update({str(s.key_expr).split("/")[-2]: json.loads(s.payload.to_bytes())["frames_in"]}),
         )
         deadline = time.monotonic() + 300
-        while proc.poll() is None and killed != set(kill_after) and time.monotonic() < deadline:
+        while launch.proc.poll() is None and killed != set(kill_after) and time.monotonic() < deadline:
             for op, after in kill_after.items():
                 if op not in killed and frames_in.get(op, 0) >= after:
                     pid = subprocess.run(
@@ -65,10 +61,8 @@ def run_graph(graph: Path, kill_after: dict[str, int]) -> tuple[str, set[str]]:
         sub.undeclare()
     finally:
         session.close()
-    proc.wait(timeout=400)
-    reader.join(timeout=10)
-    out = "".join(lines)
-    assert proc.returncode == 0, out[-5000:]
+    out = launch.wait(timeout=400)
+    assert launch.proc.returncode == 0, out[-5000:]
     return out, killed
 
 

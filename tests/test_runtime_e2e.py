@@ -7,7 +7,6 @@ import os
 import shutil
 import signal
 import subprocess
-import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -17,7 +16,7 @@ import yaml
 import zenoh
 
 from replay.log import LogError, read_log
-from tests.conftest import run_umad, start_umad
+from tests.conftest import DrainedUmad, run_umad, start_umad
 from umad_common.bus import open_client
 from umad_common.messages import decode
 
@@ -254,17 +253,13 @@ def test_truncated_log_says_how_many_messages_were_readable(tmp_path, hub_endpoi
 def test_ctrl_c_stops_everything_and_leaves_no_process_or_segment(tmp_path, hub_endpoint):
     before = zenoh_segments()
     graph = toy_graph(tmp_path, hub_endpoint, frames=1000, delay=0.05)
-    proc = start_umad("launch", str(graph))
-    lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
-    reader.start()
+    launch = DrainedUmad("launch", str(graph))
     deadline = time.monotonic() + 60
     while not ((tmp_path / "sink.jsonl").exists() and sink_lines(tmp_path)) and time.monotonic() < deadline:
         time.sleep(0.1)
-    proc.send_signal(signal.SIGINT)
-    proc.wait(timeout=60)
-    reader.join(timeout=5)
-    assert proc.returncode == 130
+    launch.proc.send_signal(signal.SIGINT)
+    launch.wait(timeout=60)
+    assert launch.proc.returncode == 130
     left = subprocess.run(["pgrep", "-f", "--", f"--graph {graph}"], capture_output=True, text=True).stdout
     assert left.strip() == ""
     assert zenoh_segments() <= before
