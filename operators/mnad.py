@@ -43,7 +43,7 @@ class MnadPredictor(Operator):
 
         torch.set_num_threads(self.params.threads)
         path = SHIPPED_WEIGHTS if self.params.weights is None else self.context.resolve(self.params.weights)
-        self.model, record = load_mnad(path)  # raises MnadWeightsError naming the file
+        self.model, record = load_mnad(path)  # raises WeightsError naming the file
         self.weights_name = path.name
         self.trained_on = record.get("training", {}).get("data")
 

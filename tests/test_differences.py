@@ -32,7 +32,8 @@ from umad_common.differences import (
 )
 from umad_common.messages import Message
 from umad_common.models.feature_net import FeatureNet, load_feature_net, save_feature_net
-from umad_common.models.vgg16 import WeightsError, load_vgg16_features
+from umad_common.models.vgg16 import load_vgg16_features
+from umad_common.models.weights import WeightsError
 from umad_common.operator import Context, Frame
 
 torch.set_num_threads(1)

@@ -8,7 +8,8 @@ import torch
 
 from operators.mnad import MnadPredictor
 from umad_common.messages import Message
-from umad_common.models.mnad import Mnad, MnadConfig, MnadWeightsError, load_mnad, save_mnad, to_input
+from umad_common.models.mnad import Mnad, MnadConfig, load_mnad, save_mnad, to_input
+from umad_common.models.weights import WeightsError
 from umad_common.operator import Context, Frame
 from umad_common.training.train_mnad import MnadTrainingConfig, train_mnad
 
@@ -82,13 +83,13 @@ def test_tiny_training_is_deterministic_and_learns(tmp_path):
 
 
 def test_load_errors_name_the_file(tmp_path):
-    with pytest.raises(MnadWeightsError, match="not found"):
+    with pytest.raises(WeightsError, match="not found"):
         load_mnad(tmp_path / "missing.safetensors")
     save_mnad(Mnad(TINY), tmp_path / "m.safetensors")
     (tmp_path / "m.json").write_text(
         '{"config": {"height": 32, "width": 48, "widths": [4, 8, 16], "feature_dim": 16, "memory_items": 4}}'
     )
-    with pytest.raises(MnadWeightsError, match="shape"):
+    with pytest.raises(WeightsError, match="shape"):
         load_mnad(tmp_path / "m.safetensors")
 
 
@@ -99,7 +100,7 @@ def test_operator_outputs_map_at_model_size(tmp_path):
     out = op.process(Frame("r", 0, 0, inputs={"camera": Message("r", 0, arrays={"rgb": rgb})}))
     score_map = out["map"].arrays["map"]
     assert score_map.shape == (32, 48) and score_map.dtype == np.float32 and np.all(score_map >= 0)
-    with pytest.raises(MnadWeightsError):
+    with pytest.raises(WeightsError):
         MnadPredictor({"weights": "nope.safetensors"}, Context(base_dir=tmp_path))
 
 

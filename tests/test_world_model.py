@@ -10,10 +10,10 @@ import torch
 
 from operators.world_model import WorldModelPredictor
 from umad_common.messages import Message
+from umad_common.models.weights import WeightsError
 from umad_common.models.world_model import (
     Observation,
     State,
-    WeightsError,
     WorldModel,
     WorldModelConfig,
     lidar_range_image,

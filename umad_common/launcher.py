@@ -94,7 +94,6 @@ class Launcher:
         replay_log: Path | None = None,
         allow_truncated: bool = False,
         max_restarts: int = 3,
-        start_hub: bool = True,
         quiet: bool = False,
     ):
         self.quiet = quiet
@@ -105,7 +104,6 @@ class Launcher:
         self.hub = hub or graph.spec.hub
         self.record = record
         self.max_restarts = max_restarts
-        self.start_hub = start_hub
         self.stats: dict[str, dict] = {}
         self._stop = threading.Event()
         self._print_lock = threading.Lock()
@@ -280,9 +278,8 @@ class Launcher:
 
         previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
         tls = self.graph.tls_config()
-        if self.start_hub:
-            self.hub_replica = Replica("hub", 0, self._hub_command(), False)
-            self._spawn(self.hub_replica)
+        self.hub_replica = Replica("hub", 0, self._hub_command(), False)
+        self._spawn(self.hub_replica)
         hub = open_client(self.hub, tls, cancel=self._stop, timeout_s=HUB_CONNECT_TIMEOUT_S, shared_memory=False)
         if hub is None:
             for sig, handler in previous.items():

@@ -19,7 +19,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from umad_common.models.vgg16 import WeightsError, load_into, read_state_dict
+from umad_common.models.vgg16 import load_into, read_state_dict
+from umad_common.models.weights import WeightsError
 
 
 @dataclass

@@ -26,6 +26,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from umad_common.models.weights import WeightsError
+
 
 @dataclass
 class MnadConfig:
@@ -202,10 +204,6 @@ def to_input(rgb: np.ndarray, cfg: MnadConfig) -> torch.Tensor:
     return x.unsqueeze(0)
 
 
-class MnadWeightsError(ValueError):
-    """An MNAD weight file is missing or does not fit its config (names the file and tensor)."""
-
-
 def weight_paths(path: str | Path) -> tuple[Path, Path]:
     """`dir/name` or `dir/name.safetensors` -> (dir/name.safetensors, dir/name.json)."""
     path = Path(path)
@@ -231,24 +229,24 @@ def load_mnad(path: str | Path) -> tuple[Mnad, dict]:
     weights, meta = weight_paths(path)
     for file in (weights, meta):
         if not file.is_file():
-            raise MnadWeightsError(f"{file}: MNAD file not found; expected {weights.name} with {meta.name} beside it")
+            raise WeightsError(f"{file}: MNAD file not found; expected {weights.name} with {meta.name} beside it")
     try:
         record = json.loads(meta.read_text())
         cfg = MnadConfig.from_dict(record["config"])
     except (ValueError, KeyError, TypeError) as exc:
-        raise MnadWeightsError(f"{meta}: not an MNAD config ({exc}); expected JSON with a 'config' object") from None
+        raise WeightsError(f"{meta}: not an MNAD config ({exc}); expected JSON with a 'config' object") from None
     model = Mnad(cfg)
     try:
         tensors = load_file(str(weights))
     except Exception as exc:  # safetensors raises its own error types for corrupt files
-        raise MnadWeightsError(f"{weights}: cannot read safetensors file ({exc})") from None
+        raise WeightsError(f"{weights}: cannot read safetensors file ({exc})") from None
     expected = model.state_dict()
     missing, unexpected = sorted(set(expected) - set(tensors)), sorted(set(tensors) - set(expected))
     if missing or unexpected:
-        raise MnadWeightsError(f"{weights}: tensors missing {missing[:5]}, unexpected {unexpected[:5]} for {meta.name}")
+        raise WeightsError(f"{weights}: tensors missing {missing[:5]}, unexpected {unexpected[:5]} for {meta.name}")
     for name, tensor in expected.items():
         if tuple(tensors[name].shape) != tuple(tensor.shape):
-            raise MnadWeightsError(
+            raise WeightsError(
                 f"{weights}: tensor {name!r} has shape {tuple(tensors[name].shape)}; expected {tuple(tensor.shape)}"
             )
     model.load_state_dict(tensors)

@@ -12,16 +12,14 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from umad_common.models.weights import WeightsError
+
 # torchvision's configuration "D" up to conv4_3; "M" is a 2x2 max-pool.
 VGG16_TRUNK = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512)
 # indices in `features` of relu1_2, relu2_2, relu3_3, relu4_3
 VGG16_TAPS = {"relu1_2": 3, "relu2_2": 8, "relu3_3": 15, "relu4_3": 22}
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-
-
-class WeightsError(ValueError):
-    """A weight file is missing, unreadable or does not fit the model (names the key and shapes)."""
 
 
 class Vgg16Features(nn.Module):

@@ -34,6 +34,8 @@ import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 from torch import nn
 
+from umad_common.models.weights import WeightsError
+
 
 @dataclass
 class WorldModelConfig:
@@ -388,10 +390,6 @@ class WorldModel(nn.Module):
 
 # ---------------------------------------------------------------------------------------------
 # Weights on disk: MODEL.safetensors + MODEL.json (config and training record)
-
-
-class WeightsError(ValueError):
-    """A world-model weight file is missing or does not fit its config (names file, tensor, shapes)."""
 
 
 def weight_paths(model: str | Path) -> tuple[Path, Path]:
