@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from replay.log import LogError, read_log
+from umad_common.datasets.anovox import ANOMALY_TAGS
 from umad_common.messages import MessageError, decode
 
 METRIC_ALIASES = {"pd": "perceptual", "td": "temporal", "l1": "abs", "l2": "mse"}
@@ -61,6 +62,7 @@ class FrameRecord:
     diffs: dict[str, np.ndarray] = field(default_factory=dict)  # canonical metric -> (h, w) float32
     masks: dict[str, PackedMasks] = field(default_factory=dict)  # segmenter op -> (K, h, w) bool, packed
     mnad: np.ndarray | None = None  # (h', w') float32
+    anomaly_tags: tuple[int, ...] = ()  # semantic tags under the anomaly pixels (AnoVox categories)
 
 
 @dataclass
@@ -146,6 +148,10 @@ def _fill(record: FrameRecord, op: str, output: str, msg, stats: LogStats) -> No
     arrays, meta = msg.arrays, msg.meta
     if output == "truth" and "anomaly" in arrays:
         record.truth = np.array(arrays["anomaly"], dtype=np.uint8)
+        semantic = arrays.get("semantic")
+        if semantic is not None and semantic.shape == record.truth.shape:
+            found = np.unique(semantic[record.truth == 1])
+            record.anomaly_tags = tuple(int(t) for t in found if int(t) in ANOMALY_TAGS)
     elif output == "frame" and "target" in arrays and "recon" in arrays:
         record.target, record.recon = _to_uint8(arrays["target"]), _to_uint8(arrays["recon"])
     elif output == "masks" and "masks" in arrays:

@@ -128,6 +128,7 @@ class SweepResult:
     skipped_rows: list[int]
     seconds: float = 0.0
     components: dict[str, dict] = field(default_factory=dict)  # name -> ComponentMetrics.compute()
+    scenario_tags: dict[str, set[int]] = field(default_factory=dict)  # run -> anomaly tags seen
 
     def row_label(self, row: int) -> str:
         return weights_label(self.rows[row])
@@ -160,6 +161,7 @@ class Sweep:
         self._overlays: list[tuple[int, int, OverlayFrame]] = []  # min-heap on anomaly pixels
         self._tie = 0
         self.rows_seen: set[int] = set()
+        self.scenario_tags: dict[str, set[int]] = {}
 
     def _count(self, config: Config, scores: np.ndarray, labels: np.ndarray) -> None:
         metrics = self.metrics.get(config)
@@ -171,6 +173,7 @@ class Sweep:
     def add(self, frame: FrameRecord, segmenters: dict[str, str]) -> None:
         if frame.truth is None or frame.seq % self.every:
             return
+        self.scenario_tags.setdefault(frame.run, set()).update(frame.anomaly_tags)
         if frame.mnad is not None:
             self.baseline = self.baseline or PixelMetrics()
             mnad_labels = resize_nearest(frame.truth, frame.mnad.shape)
@@ -246,6 +249,7 @@ class Sweep:
             stats=stats,
             segmenters=dict(stats.segmenters),
             skipped_rows=[i for i in range(len(self.rows)) if i not in self.rows_seen],
+            scenario_tags=self.scenario_tags,
         )
 
 

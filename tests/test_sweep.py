@@ -38,7 +38,17 @@ def synthetic_frames(runs=("Scenario_a", "Scenario_b"), n=6, seed=0):
             for k in range(4):
                 tiles[k, :, 3 * k : 3 * k + 3] = True
             msgs = [
-                ("replayer", "truth", {"anomaly": anomaly, "instance": anomaly.astype(np.int32)}, {}),
+                (
+                    "replayer",
+                    "truth",
+                    # run a shows a CARLA `animal` (30), run b a `home` (29) object
+                    {
+                        "anomaly": anomaly,
+                        "instance": anomaly.astype(np.int32),
+                        "semantic": ((anomaly == 1) * (30 - runs.index(run))).astype(np.uint8),
+                    },
+                    {},
+                ),
                 ("replayer", "camera", {"rgb": rng.integers(0, 255, (H, W, 3), dtype=np.uint8)}, {}),
                 (
                     "world_model",
@@ -229,6 +239,8 @@ def test_report_files(result, log_and_truth, tmp_path):
     page = (out / "index.html").read_text()  # the page shows the table files' values and marks
     assert f"<b>{100 * best_ap:.2f}</b>" in page and "<i>" in page and "_mark" not in page
     assert page.count("<table>") == 3  # ablation, components, per scenario
+    scenarios = (out / "per_scenario.md").read_text()
+    assert "| Scenario_a | animal |" in scenarios and "| Scenario_b | home |" in scenarios
 
 
 def test_cli(log_and_truth, tmp_path, capsys):

@@ -27,6 +27,15 @@ import cv2
 import numpy as np
 
 ANOMALY_TAGS = (29, 30, 31, 32, 33, 34, 100)
+ANOMALY_CATEGORIES = {
+    29: "home",
+    30: "animal",
+    31: "nature",
+    32: "special",
+    33: "airplane",
+    34: "falling",
+    100: "anomaly",
+}
 GENERIC_ANOMALY_TAG = 100
 ANOMALY_COLOUR = (245, 0, 0)  # benchmark SEMANTIC_IMG colour of every anomaly pixel
 DEPTH_SCALE = 1000.0 / (2**24 - 1)  # CARLA raw depth: metres per unit of R + 256 G + 65536 B

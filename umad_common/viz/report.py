@@ -16,6 +16,7 @@ from fractions import Fraction
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from umad_common.datasets.anovox import ANOMALY_CATEGORIES
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.viz.plots import plot_curves, plot_overlay_grid
 
@@ -161,17 +162,20 @@ def pivot_table(rows: list[dict[str, Any]], baseline: dict[str, Any] | None, key
 
 
 def scenario_table(result: SweepResult, md_path: Path, csv_path: Path) -> str:
-    """AP / FPR95 / AUROC per scenario for the default weight row under each mask setting and MNAD."""
+    """AP / FPR95 / AUROC per scenario for the default weight row under each mask setting and MNAD,
+    with the AnoVox categories found under the scenario's anomaly pixels."""
     present = {label for per_run in result.per_scenario.values() for label in per_run}
     settings = [label for label in [*result.setting_labels(), "MNAD"] if label in present]
     lines = [
-        "| scenario | " + " | ".join(f"{s} AP / FPR95 / AUROC" for s in settings) + " |",
-        "|---|" + "---|" * len(settings),
+        "| scenario | anomaly | " + " | ".join(f"{s} AP / FPR95 / AUROC" for s in settings) + " |",
+        "|---|---|" + "---|" * len(settings),
     ]
     with open(csv_path, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["scenario", "setting", "AP", "FPR95", "AUROC", "n_anomaly", "n_normal"])
+        writer.writerow(["scenario", "anomaly", "setting", "AP", "FPR95", "AUROC", "n_anomaly", "n_normal"])
         for run in sorted(result.per_scenario):
+            tags = sorted(result.scenario_tags.get(run, ()))
+            anomaly = "+".join(ANOMALY_CATEGORIES.get(t, str(t)) for t in tags) or "-"
             cells = []
             for setting in settings:
                 metrics = result.per_scenario[run].get(setting)
@@ -180,8 +184,10 @@ def scenario_table(result: SweepResult, md_path: Path, csv_path: Path) -> str:
                     continue
                 s = metrics.compute()
                 cells.append(" / ".join(_percent(_number(s[k])) for k, _ in SCORES))
-                writer.writerow([run, setting, *(_number(s[k]) for k, _ in SCORES), s["n_anomaly"], s["n_normal"]])
-            lines.append(f"| {run} | " + " | ".join(cells) + " |")
+                writer.writerow(
+                    [run, anomaly, setting, *(_number(s[k]) for k, _ in SCORES), s["n_anomaly"], s["n_normal"]]
+                )
+            lines.append(f"| {run} | {anomaly} | " + " | ".join(cells) + " |")
     text = "\n".join(lines) + "\n"
     md_path.write_text(text)
     return text
