@@ -234,6 +234,26 @@ def test_replay_needs_only_the_log_and_keeps_the_recorded_overrides(tmp_path, hu
     a, b = stats_payloads(first), stats_payloads(second)
     assert len(a) == 7 and a == b  # six frames and the end-of-run marker
     assert all(decode(a[seq]).meta["params"] == {"scale": 2.0} for seq in range(6))
+    assert_foxglove_camera_views(first, frames=6, shape=(64, 96, 3))
+
+
+def assert_foxglove_camera_views(log: Path, frames: int, shape: tuple[int, int, int]) -> None:
+    """The log opens in Foxglove: JPEG `foxglove.CompressedImage` JSON messages of the camera."""
+    import base64
+
+    import cv2
+    import numpy as np
+    from mcap.reader import make_reader
+
+    with open(log, "rb") as f:
+        views = [
+            (schema.name, channel.message_encoding, json.loads(message.data))
+            for schema, channel, message in make_reader(f).iter_messages(topics=["viz/replayer/camera"])
+        ]
+    assert len(views) == frames
+    assert {(name, encoding) for name, encoding, _ in views} == {("foxglove.CompressedImage", "json")}
+    picture = cv2.imdecode(np.frombuffer(base64.b64decode(views[0][2]["data"]), np.uint8), cv2.IMREAD_COLOR)
+    assert views[0][2]["format"] == "jpeg" and picture.shape == shape
 
 
 def test_truncated_log_says_how_many_messages_were_readable(tmp_path, hub_endpoint):

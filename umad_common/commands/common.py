@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -12,6 +13,7 @@ from umad_common.graph import Graph, GraphError, load_graph, missing_local_files
 
 DEFAULT_GRAPH = Path(__file__).resolve().parents[2] / "graph.yaml"
 CONNECT_TIMEOUT_S = 10.0  # how long `umad set` / `umad op` wait for a running graph's hub
+LIVELINESS_ATTEMPTS = 3
 
 
 def add_graph_argument(parser: argparse.ArgumentParser, positional: bool = False) -> None:
@@ -51,9 +53,11 @@ def add_connect_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--connect", default=None, help="hub endpoint (default: the graph's `hub`)")
 
 
-def connect_to_running_graph(graph: Graph, connect: str | None):
+def connect_to_running_graph(graph: Graph, connect: str | None, wanted: set[str] | None = None):
     """A session on the running graph's hub and the operators live there, or None after saying that
-    no hub answered: commands to a graph that is not running must fail fast, not hang."""
+    no hub answered: commands to a graph that is not running must fail fast, not hang. Liveliness
+    replies right after connecting can be incomplete, so a missing `wanted` operator is asked for
+    again before it counts as absent."""
     from umad_common.bus import Keys, live_replicas, open_client
 
     hub = connect or graph.spec.hub
@@ -63,5 +67,10 @@ def connect_to_running_graph(graph: Graph, connect: str | None):
             f"no hub at {hub} within {CONNECT_TIMEOUT_S:.0f}s: is the graph running (`umad launch`)?", file=sys.stderr
         )
         return None
-    live = {op for op, _ in live_replicas(session, Keys(graph.name))}
+    live: set[str] = set()
+    for attempt in range(LIVELINESS_ATTEMPTS):
+        time.sleep(0.3 * (attempt + 1))
+        live |= {op for op, _ in live_replicas(session, Keys(graph.name))}
+        if live and (wanted is None or wanted <= live):
+            break
     return session, live

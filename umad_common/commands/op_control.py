@@ -36,7 +36,7 @@ def run(args) -> int:
     if action == "start" and args.id not in {o.id for o in graph.spec.operators}:
         print(f"{args.graph}: no operator {args.id!r} to start", file=sys.stderr)
         return 1
-    connected = connect_to_running_graph(graph, args.connect)
+    connected = connect_to_running_graph(graph, args.connect, wanted={args.id} if action == "stop" else None)
     if connected is None:
         return 1
     session, live = connected

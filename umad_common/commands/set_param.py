@@ -34,7 +34,7 @@ def run(args) -> int:
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return 1
-    connected = connect_to_running_graph(graph, args.connect)
+    connected = connect_to_running_graph(graph, args.connect, wanted=set(overrides))
     if connected is None:
         return 1
     session, live = connected
