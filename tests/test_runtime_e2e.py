@@ -321,7 +321,7 @@ def test_hot_swap_start_stop_and_set_take_effect_on_later_frames(tmp_path, hub_e
     data = yaml.safe_load(graph.read_text())
     data["operators"][0]["params"]["runs"] = 1
     graph.write_text(yaml.safe_dump(data, sort_keys=False))
-    proc = start_umad("launch", str(graph))
+    proc = start_umad("launch", str(graph), "--record", str(tmp_path / "run.mcap"))
 
     def wait_for(predicate, what):
         deadline = time.monotonic() + 60
@@ -362,6 +362,20 @@ def test_hot_swap_start_stop_and_set_take_effect_on_later_frames(tmp_path, hub_e
     ]
     assert order == sorted(order)
     assert "parameters changed: {'factor': 5}" in out
+    # The log says what changed and when: the control messages are recorded with the frames.
+    from mcap.reader import make_reader
+
+    with open(tmp_path / "run.mcap", "rb") as f:
+        control = [
+            (channel.topic, json.loads(message.data))
+            for _, channel, message in make_reader(f).iter_messages()
+            if "/_ctl/" in channel.topic
+        ]
+    assert ("umad/toy/_ctl/double", {"set": {"factor": 5}}) in control
+    assert [c[1].get("start") or c[1].get("stop") for c in control if c[0] == "umad/toy/_ctl/_launcher"] == [
+        "quadruple",
+        "quadruple",
+    ]
 
 
 def test_restarted_stateful_operator_rebuilds_its_state_and_results_match(tmp_path, hub_endpoint):
