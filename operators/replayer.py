@@ -87,7 +87,7 @@ class Replayer(Source):
             return
         for run in self.scenarios:
             for seq in range(self.run_length(run)):
-                yield self.frame_at(run, seq)
+                yield self.frame_or_error(run, seq)
 
     def frame_at(self, run: str, seq: int) -> SourceFrame:
         """Frame `seq` of scenario `run`, read again from disk (identical to what `frames` yields)."""

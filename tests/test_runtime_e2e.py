@@ -237,6 +237,39 @@ def test_replay_needs_only_the_log_and_keeps_the_recorded_overrides(tmp_path, hu
     assert_foxglove_camera_views(first, frames=6, shape=(64, 96, 3))
 
 
+def test_a_frame_with_a_missing_file_travels_as_an_error_and_the_stream_goes_on(tmp_path, hub_endpoint):
+    from umad_common.datasets.synthetic.generator import generate_benchmark
+
+    generate_benchmark(tmp_path / "data", 0, 2, 6, 5, (96, 64))
+    scenario = sorted((tmp_path / "data" / "anomalous").glob("Scenario_*"))[1]
+    semantic = sorted(next(scenario.glob("SEMANTIC-CAM*")).iterdir())[3]
+    semantic.unlink()
+    graph = tmp_path / "graph.yaml"
+    graph.write_text(
+        yaml.safe_dump(
+            {
+                "name": "missing",
+                "hub": hub_endpoint,
+                "operators": [
+                    {"id": "replayer", "kind": "replayer", "params": {"source": str(tmp_path / "data" / "anomalous")}},
+                    {"id": "stats", "uses": "tests.toy_ops:ImageStats", "inputs": {"image": "replayer/camera"}},
+                ],
+            },
+            sort_keys=False,
+        )
+    )
+    result = run_umad("launch", str(graph), "--record", str(tmp_path / "run.mcap"), timeout=120)
+    assert result.returncode == 0, result.stdout
+    assert f"{scenario.name}#3 cannot be read" in result.stdout and semantic.name.split("_")[-1][:-4] in result.stdout
+    assert "restart" not in result.stdout  # a data error is not a crash
+    outputs = [decode(r.data) for r in read_log(tmp_path / "run.mcap") if r.topic == "umad/missing/stats/stats"]
+    frames = [m for m in outputs if not m.meta.get("eos")]
+    assert len(frames) == 12
+    failed = [(m.run, m.seq) for m in frames if m.meta.get("error")]
+    assert failed == [(scenario.name, 3)]  # the other 11 frames were computed as usual
+    assert all("x" in m.arrays for m in frames if not m.meta.get("error"))
+
+
 def assert_foxglove_camera_views(log: Path, frames: int, shape: tuple[int, int, int]) -> None:
     """The log opens in Foxglove: JPEG `foxglove.CompressedImage` JSON messages of the camera."""
     import base64

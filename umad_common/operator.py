@@ -149,6 +149,7 @@ class SourceFrame:
     stamp_ns: int
     outputs: dict[str, Output] = field(default_factory=dict)
     raw: dict[str, bytes] = field(default_factory=dict)  # port -> payload published verbatim (log replay)
+    error: str | None = None  # the frame could not be read: it travels on as an error marker
 
 
 class Source(Operator):
@@ -163,6 +164,14 @@ class Source(Operator):
         """One earlier frame again, identical to what `frames` yielded: lets a restarted stateful
         operator re-observe a run. Sources without random access leave this unimplemented."""
         raise NotImplementedError
+
+    def frame_or_error(self, run: str, seq: int) -> SourceFrame:
+        """`frame_at`, or an error frame when its files cannot be read (a missing or corrupt file):
+        one bad frame is reported and skipped downstream, the stream goes on."""
+        try:
+            return self.frame_at(run, seq)
+        except (OSError, ValueError) as exc:
+            return SourceFrame(run, seq, 0, error=f"{type(exc).__name__}: {exc}")
 
     def total_frames(self) -> int | None:
         """How many frames `frames` will yield, when known up front (the launcher shows progress)."""

@@ -97,7 +97,12 @@ class SourceDriver:
             time.sleep(0.05)
 
     def _payloads(self, sf: SourceFrame) -> list[tuple[str, bytes]]:
-        """A source frame's messages: recorded bytes as they are, or its outputs encoded."""
+        """A source frame's messages: recorded bytes as they are, its outputs encoded, or error
+        markers for a frame that could not be read (logged with its id and counted in `errors`)."""
+        if sf.error is not None:
+            self.rt.stats.errors += 1
+            self.rt.log.error("frame %s#%d cannot be read, sent on as an error: %s", sf.run, sf.seq, sf.error)
+            return self.rt._markers(sf.run, sf.seq, sf.stamp_ns, {"error": f"{self.rt.op_id}: {sf.error}"})
         if sf.raw:
             return list(sf.raw.items())
         return self.rt._encode_outputs(sf.run, sf.seq, sf.stamp_ns, sf.outputs, {})
@@ -162,7 +167,7 @@ class SourceDriver:
         try:
             run, first, last = str(request["run"]), int(request["from"]), int(request["to"])
             for seq in range(first, last):
-                rt._publish(self._payloads(self.source.frame_at(run, seq)))
+                rt._publish(self._payloads(self.source.frame_or_error(run, seq)))
         except NotImplementedError:
             rt.log.error(
                 "%s cannot resend frames (no frame_at); %s must start its run over", rt.op_id, request.get("for")
