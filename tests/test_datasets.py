@@ -263,6 +263,17 @@ def test_missing_file_names_the_folder_and_frame(tmp_path, generated):
         scenario[3]
 
 
+def test_missing_camera_image_is_a_reported_frame_not_a_gap(tmp_path, generated):
+    folder = copy_scenario(generated, tmp_path)
+    frames = len(AnoVoxScenario(folder))
+    sensor_file(folder, "RGB-CAM", 3).unlink()
+    scenario = AnoVoxScenario(folder)
+    assert len(scenario) == frames  # the other sensors still recorded frame 3
+    with pytest.raises(DatasetError, match=rf"RGB-CAM.*frame {scenario.frame_ids[3]}"):
+        scenario[3]
+    assert scenario[4].frame_id == scenario.frame_ids[4]
+
+
 def test_missing_key_and_missing_folders(tmp_path, generated):
     folder = copy_scenario(generated, tmp_path)
     action = sensor_file(folder, "ACTION", 0)

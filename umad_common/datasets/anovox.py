@@ -336,8 +336,10 @@ class AnoVoxScenario:
                 f"{self.path}: no camera folder; expected RGB_IMG/ (benchmark layout) or RGB-CAM(...)_<hash>/ (generator layout)"
             )
         self._files = {key: _index_folder(folder) for key, folder in self.folders.items()}
-        all_ids = sorted(self._files["rgb"])
-        if not all_ids:
+        # Every frame any sensor recorded: a frame whose camera image is missing is then reported
+        # when it is read, instead of silently leaving a gap in the drive.
+        all_ids = sorted(set(self._files["rgb"]).union(*(ids for key, ids in self._files.items() if key != "rgb")))
+        if not self._files["rgb"]:
             raise DatasetError(f"{self.folders['rgb']}: no image files named *_<frame>.png")
         self.every = every
         self.frame_ids: list[int] = all_ids[::every]
