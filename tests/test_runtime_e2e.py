@@ -200,26 +200,25 @@ def test_record_then_replay_gives_byte_identical_sink_outputs(tmp_path, hub_endp
     assert len(a) == 2 * 16 and a == b
 
 
+def replayer_graph(tmp_path: Path, name: str, hub: str) -> Path:
+    """The real replayer on tmp_path/data/anomalous feeding a light sink of camera statistics."""
+    graph = tmp_path / "graph.yaml"
+    source = str(tmp_path / "data" / "anomalous")
+    operators = [
+        {"id": "replayer", "kind": "replayer", "params": {"source": source}},
+        {"id": "stats", "uses": "tests.toy_ops:ImageStats", "inputs": {"image": "replayer/camera"}},
+    ]
+    graph.write_text(yaml.safe_dump({"name": name, "hub": hub, "operators": operators}, sort_keys=False))
+    return graph
+
+
 def test_replay_needs_only_the_log_and_keeps_the_recorded_overrides(tmp_path, hub_endpoint):
     """The data folder is gone and no --graph is given: the log's graph, its --set overrides and its
     source frames reproduce the sink's outputs byte for byte."""
     from umad_common.datasets.synthetic.generator import generate_benchmark
 
     generate_benchmark(tmp_path / "data", 0, 1, 6, 5, (96, 64))
-    graph = tmp_path / "graph.yaml"
-    graph.write_text(
-        yaml.safe_dump(
-            {
-                "name": "logonly",
-                "hub": hub_endpoint,
-                "operators": [
-                    {"id": "replayer", "kind": "replayer", "params": {"source": str(tmp_path / "data" / "anomalous")}},
-                    {"id": "stats", "uses": "tests.toy_ops:ImageStats", "inputs": {"image": "replayer/camera"}},
-                ],
-            },
-            sort_keys=False,
-        )
-    )
+    graph = replayer_graph(tmp_path, "logonly", hub_endpoint)
     first, second = tmp_path / "first.mcap", tmp_path / "second.mcap"
     result = run_umad("launch", str(graph), "--record", str(first), "--set", "stats.scale=2", timeout=120)
     assert result.returncode == 0, result.stdout
@@ -244,20 +243,7 @@ def test_a_frame_with_a_missing_file_travels_as_an_error_and_the_stream_goes_on(
     scenario = sorted((tmp_path / "data" / "anomalous").glob("Scenario_*"))[1]
     semantic = sorted(next(scenario.glob("SEMANTIC-CAM*")).iterdir())[3]
     semantic.unlink()
-    graph = tmp_path / "graph.yaml"
-    graph.write_text(
-        yaml.safe_dump(
-            {
-                "name": "missing",
-                "hub": hub_endpoint,
-                "operators": [
-                    {"id": "replayer", "kind": "replayer", "params": {"source": str(tmp_path / "data" / "anomalous")}},
-                    {"id": "stats", "uses": "tests.toy_ops:ImageStats", "inputs": {"image": "replayer/camera"}},
-                ],
-            },
-            sort_keys=False,
-        )
-    )
+    graph = replayer_graph(tmp_path, "missing", hub_endpoint)
     result = run_umad("launch", str(graph), "--record", str(tmp_path / "run.mcap"), timeout=120)
     assert result.returncode == 0, result.stdout
     assert f"{scenario.name}#3 cannot be read" in result.stdout and semantic.name.split("_")[-1][:-4] in result.stdout
