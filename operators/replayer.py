@@ -33,6 +33,12 @@ class Replayer(Source):
             description="a Scenario_* folder, a folder searched recursively for them, or an MCAP log of an earlier run",
         )
         every: int = Field(1, ge=1, description="publish every k-th frame of each scenario")
+        score_every: int = Field(
+            1,
+            ge=1,
+            description="score every k-th published frame (seq % k == 0); the others carry meta `skip`: the "
+            "world model still steps on them, every other operator passes them on without computing",
+        )
         scenarios: list[str] | None = Field(None, description="keep only scenarios with these folder names (None: all)")
         max_frames: int | None = Field(
             None, ge=1, description="at most this many frames per run after sampling (None: all)"
@@ -100,26 +106,27 @@ class Replayer(Source):
             raise IndexError(f"seq {seq} out of range for run {run!r} with {self.run_length(run)} frames")
         scenario = self.scenarios[run]
         stamp_ns = seq * scenario.every * RECORDING_PERIOD_NS  # AnoVox frames are 10 Hz apart
-        return SourceFrame(run, seq, stamp_ns, frame_outputs(scenario[seq], run))
+        return SourceFrame(run, seq, stamp_ns, frame_outputs(scenario[seq], run, seq % self.params.score_every == 0))
 
 
-def frame_outputs(frame: AnoVoxFrame, scenario: str) -> dict[str, Output]:
-    """The five topics of one frame; absent modalities become empty or zero arrays."""
+def frame_outputs(frame: AnoVoxFrame, scenario: str, scored: bool = True) -> dict[str, Output]:
+    """The five topics of one frame; absent modalities become empty or zero arrays. A frame that is
+    not scored carries meta `skip` on every topic and no labels."""
     height, width = frame.rgb.shape[:2]
     lidar = frame.lidar if frame.lidar is not None else np.zeros((0, 4), np.float32)
     route = frame.route if frame.route is not None else np.zeros(ROUTE_SHAPE, np.uint8)
     instance = frame.instance if frame.instance is not None else np.zeros((height, width), np.int32)
     semantic = frame.semantic if frame.semantic is not None else np.zeros((height, width), np.uint8)
+    skip = {} if scored else {"skip": True}
+    truth = {
+        "anomaly": frame.anomaly.astype(np.uint8),
+        "instance": instance.astype(np.int32),
+        "semantic": semantic.astype(np.uint8),
+    }
     return {
-        "camera": Output({"rgb": frame.rgb}, {"frame_id": int(frame.frame_id), "scenario": scenario}),
-        "lidar": Output({"points": np.ascontiguousarray(lidar, np.float32)}),
-        "ego": Output({"ego": frame.ego.as_array()}),
-        "route": Output({"route": np.ascontiguousarray(route, np.uint8)}),
-        "truth": Output(
-            {
-                "anomaly": frame.anomaly.astype(np.uint8),
-                "instance": instance.astype(np.int32),
-                "semantic": semantic.astype(np.uint8),
-            }
-        ),
+        "camera": Output({"rgb": frame.rgb}, {"frame_id": int(frame.frame_id), "scenario": scenario, **skip}),
+        "lidar": Output({"points": np.ascontiguousarray(lidar, np.float32)}, skip),
+        "ego": Output({"ego": frame.ego.as_array()}, skip),
+        "route": Output({"route": np.ascontiguousarray(route, np.uint8)}, skip),
+        "truth": Output(truth if scored else {}, skip),
     }

@@ -12,6 +12,9 @@ Frames between model steps (stride > 1) get their own target and a reconstructio
 posterior of their own observation on top of the last step's state, without advancing the state or
 the rollouts; they carry no predictions (`preds` zeros, `pred_valid` all 0). The model was trained
 with one step per `frame_step` dataset frames (in its JSON); stride should match it.
+
+A frame the source does not score (meta `skip`, `umad eval --every k`) still moves the state and the
+rollouts on, but nothing is decoded: the runtime passes it on as a skip marker.
 """
 
 from __future__ import annotations
@@ -128,24 +131,28 @@ class WorldModelPredictor(Operator):
         embed = self.model.embed(obs)[:, 0]
         hidden = self.model.transition(self.state, self.pending_action)
         posterior = State(hidden, self.model.posterior(hidden, embed)[0])
+        scored = not frame.inputs["camera"].meta.get("skip")
         if model_step:
             advanced = []
             for origin in self.rollouts:
                 h_pred = self.model.transition(origin, self.pending_action)
                 advanced.append(State(h_pred, self.model.prior(h_pred)[0]))
-            batch = [posterior, *advanced]
-            states = State(torch.cat([s.h for s in batch]), torch.cat([s.z for s in batch]))
-            images = self.model.decode(states, with_lidar=False)[0]
-            images = images.permute(0, 2, 3, 1).numpy()
-            recon = images[0]
-            preds[: len(advanced)] = images[1:]
-            valid[: len(advanced)] = 1
+            recon = np.zeros((h, w, 3), np.float32)
+            if scored:  # a frame nobody scores only moves the state on: nothing to draw
+                batch = [posterior, *advanced]
+                states = State(torch.cat([s.h for s in batch]), torch.cat([s.z for s in batch]))
+                images = self.model.decode(states).permute(0, 2, 3, 1).numpy()
+                recon = images[0]
+                preds[: len(advanced)] = images[1:]
+                valid[: len(advanced)] = 1
             self.state = posterior
             self.rollouts = [posterior, *advanced][:n]
             self.pending_action = torch.from_numpy(action)[None]
             self.steps += 1
+        elif scored:
+            recon = self.model.decode(posterior)[0].permute(1, 2, 0).numpy()
         else:
-            recon = self.model.decode(posterior, with_lidar=False)[0][0].permute(1, 2, 0).numpy()
+            recon = np.zeros((h, w, 3), np.float32)
         meta = {
             "model": self.model_path.name,
             "model_step": bool(model_step),

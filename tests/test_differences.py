@@ -394,8 +394,9 @@ def test_calibrate_uses_heldout_normal_drives_and_never_reads_labels(tmp_path, f
     with pytest.raises(DatasetError):
         AnoVoxScenario(held)[0]  # the label files really are poison to a reader that opens them
     config = WorldModelConfig(
-        image_height=32, image_width=48, image_channels=(8, 8), lidar_rows=16, lidar_width=32, lidar_channels=(8, 8),
-        lidar_embed=8, route_size=16, route_channels=(8,), route_embed=8, deter_dim=16, hidden_dim=16, frame_step=2,
+        image_height=32, image_width=48, image_channels=(8, 8), decoder_channels=(8, 8, 4), lidar_rows=16,
+        lidar_width=32, lidar_channels=(8, 8), lidar_embed=8, route_size=16, route_channels=(8,), route_embed=8,
+        deter_channels=4, stoch_channels=2, hidden_channels=8, transition_kernel=3, frame_step=2,
     )  # fmt: skip
     torch.manual_seed(0)
     save_world_model(WorldModel(config), tmp_path / "wm", {"heldout_drives": ["Scenario_b"]})

@@ -21,12 +21,12 @@ pytestmark = pytest.mark.slow
 FRAMES = 16
 
 
-def pipeline_graph(tmp_path: Path, data: Path, name: str) -> Path:
+def pipeline_graph(tmp_path: Path, data: Path, name: str, score_every: int = 1) -> Path:
     graph = yaml.safe_load((REPO / "graph.yaml").read_text())
     graph.update(hub=f"tcp/127.0.0.1:{free_port()}", base_dir=str(REPO))
     for op in graph["operators"]:
         if op["kind"] == "replayer":
-            op["params"].update(source=str(data / "anomalous"), window=4, ack_timeout_s=3.0)
+            op["params"].update(source=str(data / "anomalous"), window=4, ack_timeout_s=3.0, score_every=score_every)
         if op["kind"] == "accumulator":
             op["params"]["out"] = str(tmp_path / f"{name}.json")
     path = tmp_path / f"{name}.yaml"
@@ -81,3 +81,17 @@ def test_killed_worker_and_world_model_leave_the_metrics_exactly_as_without_faul
     assert set(clean["overall"]) >= {"fusion", "refine_gt", "refine_unsup", "mnad"}
     assert faulty == clean  # every AP / FPR95 / AUROC and pixel count, to the last bit
     assert all(m["n_anomaly"] > 0 for m in clean["overall"].values())
+
+
+def test_score_every_k_scores_every_kth_frame_while_the_world_model_sees_all(tmp_path):
+    from umad_common.datasets.synthetic.generator import generate_benchmark
+    from umad_common.models.world_model import load_world_model
+
+    generate_benchmark(tmp_path / "data", 0, 1, FRAMES, 7, (192, 128))
+    out, _ = run_graph(pipeline_graph(tmp_path, tmp_path / "data", "every2", score_every=2), {})
+    config = load_world_model(REPO / "umad_common/assets/world_model")[0].config
+    scored = json.loads((tmp_path / "every2.json").read_text())["overall"]
+    for producer in ("fusion", "refine_gt", "refine_unsup"):
+        pixels = sum(scored[producer][k] for k in ("n_anomaly", "n_normal", "n_ignored"))
+        assert pixels == FRAMES // 2 * config.image_height * config.image_width, producer
+    assert f"stopped after {FRAMES} frames" in out.split("[world_model.0]", 1)[1]

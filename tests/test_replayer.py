@@ -74,6 +74,18 @@ def test_every_max_frames_and_scenario_filter(generated):
     assert [f.stamp_ns for f in frames] == [0, 200_000_000]
 
 
+def test_score_every_marks_the_frames_nobody_scores(generated):
+    name = find_scenarios(generated / "anomalous")[0].name
+    replayer = Replayer({"source": str(generated / "anomalous"), "score_every": 3, "scenarios": [name]})
+    frames = list(replayer.frames())
+    assert [f.seq for f in frames] == list(range(len(AnoVoxScenario(generated / "anomalous" / name))))
+    for f in frames:
+        skipped = [bool(out.meta.get("skip")) for out in f.outputs.values()]
+        assert skipped == [f.seq % 3 != 0] * len(skipped), f.seq
+        assert ("anomaly" in f.outputs["truth"].arrays) == (f.seq % 3 == 0)  # no labels for an unscored frame
+        assert f.outputs["camera"].arrays["rgb"].size > 0  # the world model still needs the camera
+
+
 def test_single_scenario_folder_and_relative_source(generated):
     folder = find_scenarios(generated / "anomalous")[0]
     replayer = Replayer({"source": f"anomalous/{folder.name}"}, Context(base_dir=generated))

@@ -28,6 +28,7 @@ TINY = dict(
     image_height=32,
     image_width=64,
     image_channels=(4, 4, 8),
+    decoder_channels=(8, 4, 4, 4),
     lidar_rows=32,
     lidar_width=64,
     lidar_channels=(4, 4, 8, 8, 8),
@@ -35,11 +36,11 @@ TINY = dict(
     route_size=16,
     route_channels=(4, 4, 4, 4),
     route_embed=8,
-    deter_dim=16,
+    deter_channels=4,
     stoch_channels=2,
-    context_channels=4,
     side_channels=4,
-    hidden_dim=16,
+    hidden_channels=8,
+    transition_kernel=3,
 )
 
 
@@ -65,7 +66,6 @@ def test_observe_and_imagine_shapes():
     obs, actions = random_observation(c, b=2, t=5)
     result = model.observe(obs, actions)
     assert result.rgb.shape == (2, 5, 3, 32, 64)
-    assert result.lidar_range.shape == (2, 5, 1, 32, 64)
     assert result.states.h.shape == (2, 5, c.deter_dim) and result.states.z.shape == (2, 5, c.stoch_dim)
     assert result.prior_std.min() >= c.min_std and result.post_std.min() >= c.min_std
     assert 0.0 <= result.rgb.min() and result.rgb.max() <= 1.0
@@ -129,7 +129,7 @@ def test_save_load_round_trip(tmp_path):
 def test_wrong_shape_weights_name_the_tensor(tmp_path):
     save_world_model(tiny_model(), tmp_path / "wm")
     meta = json.loads((tmp_path / "wm.json").read_text())
-    meta["config"]["deter_dim"] = 24
+    meta["config"]["deter_channels"] = 6
     (tmp_path / "wm.json").write_text(json.dumps(meta))
     with pytest.raises(WeightsError, match=r"tensor '[\w.]+' has shape \(\d+(, \d+)*\); expected \(\d+(, \d+)*\)"):
         load_world_model(tmp_path / "wm")
@@ -202,6 +202,22 @@ def test_predictor_resets_at_a_new_run_and_honours_stride(weights):
     assert [list(o.arrays["pred_valid"]) for o in outs] == [[0, 0], [1, 0], [0, 0], [1, 1]]
     again = op.process(sensor_frame("run_b", 0, np.random.default_rng(0)))["frame"]
     assert np.array_equal(again.arrays["recon"], first.arrays["recon"]) and not again.arrays["pred_valid"].any()
+
+
+def test_predictor_steps_on_unscored_frames_without_drawing_them(weights):
+    frames = [sensor_frame("run_a", seq, np.random.default_rng(seq)) for seq in range(4)]
+    every = WorldModelPredictor({"model": str(weights), "horizon": 2})
+    expected = [every.process(f)["frame"].arrays for f in frames]
+    skipping = WorldModelPredictor({"model": str(weights), "horizon": 2})
+    for seq, frame in enumerate(frames):
+        if seq % 2:
+            frame.inputs["camera"].meta["skip"] = True
+        out = skipping.process(frame)["frame"].arrays
+        if seq % 2:
+            assert not out["recon"].any() and not out["pred_valid"].any()
+        else:  # the state moved on through the skipped frame: identical to seeing every frame drawn
+            assert np.array_equal(out["recon"], expected[seq]["recon"])
+            assert np.array_equal(out["preds"], expected[seq]["preds"])
 
 
 def test_predictor_fails_early_on_missing_or_mismatched_weights(tmp_path, weights):
@@ -311,11 +327,44 @@ def test_training_writes_weights_is_deterministic_and_resumes(tiny_benchmark, tm
         train(tmp_path / "b", epochs=2, resume=True)
 
 
-def test_evaluation_reports_psnr_and_anomaly_road_ratio(tiny_benchmark):
+def test_evaluation_reports_psnr_per_step_and_anomaly_road_ratio(tiny_benchmark):
     from umad_common.training.evaluate_world_model import evaluate_world_model
 
-    figures = evaluate_world_model(tiny_model(), tiny_benchmark, heldout=["Scenario_n2"])
-    assert figures["heldout_drives"] == 1 and figures["heldout_frames"] == 12
+    record = {"training_drives": ["Scenario_n0", "Scenario_n1"]}
+    figures = evaluate_world_model(tiny_model(), tiny_benchmark, record, horizon=3)
+    assert figures["normal_drives"] == 1 and figures["normal_frames"] == 12
     assert figures["anomalous_drives"] == 1 and figures["anomaly_pixels"] > 0
-    assert 0 < figures["heldout_recon_psnr"] < 60
+    assert all(0 < figures[key] < 60 for key in ("recon_psnr", "pred1_psnr", "pred2_psnr", "pred3_psnr"))
     assert figures["anomaly_road_ratio"] == pytest.approx(figures["anomaly_error"] / figures["road_error"])
+    # any folder of normal drives: a model that names none of them as training drives is scored on all
+    assert evaluate_world_model(tiny_model(), tiny_benchmark / "normal", {}, horizon=1)["normal_drives"] == 3
+
+
+def test_evaluation_predictions_are_the_prior_rolled_from_k_steps_back(tiny_benchmark):
+    from umad_common.datasets.anovox import label_free_scenario
+    from umad_common.training.evaluate_world_model import filter_drive, predict_drive
+    from umad_common.training.train_world_model import load_drive
+
+    model = tiny_model()
+    drive = load_drive(label_free_scenario(tiny_benchmark / "normal" / "Scenario_n0"), model.config)
+    posterior, _ = filter_drive(model, drive, chunk=5)  # chunked filtering = one pass
+    actions = torch.from_numpy(drive.action)[None]  # (1, T, 2) the action taken after frame t
+    with torch.no_grad():
+        for k, frames, predicted in predict_drive(model, drive, posterior, horizon=3, chunk=4):
+            assert list(frames) == list(range(k, len(drive)))
+            for t in (k, len(drive) - 1):
+                start = State(posterior.h[t - k : t - k + 1], posterior.z[t - k : t - k + 1])
+                expected = model.imagine(start, actions[:, t - k : t], k).rgb[0, -1].permute(1, 2, 0).numpy()
+                assert np.allclose(predicted[t - k], expected, atol=1e-5), (k, t)
+
+
+def test_test_world_model_command_names_data_it_cannot_score(tmp_path, weights):
+    import argparse
+
+    from umad_common.commands import test_world_model
+
+    args = argparse.Namespace(
+        model=weights, data=tmp_path, horizon=3, normal_limit=None, anomalous_limit=None, threads=1
+    )
+    with pytest.raises(SystemExit, match="no normal drive the model did not train on"):
+        test_world_model.run(args)

@@ -13,6 +13,9 @@ Delivery protocol (lossless by design):
     instead of recomputing (exactly-once effect, state untouched);
   - a frame whose processing raised travels on as an error marker (meta `error`), so sinks still
     ack it and the stream never stalls on it;
+  - a frame the source marks as not scored (meta `skip`: `umad eval --every k` scores every k-th
+    frame) is processed by in-order operators (the world model's state needs every frame) and
+    passed on by every other operator as a skip marker, without computing;
   - after the last frame of a run is acked the source sends an end-of-run marker (meta `eos`),
     which each operator passes on after calling its `end_run`.
 """
@@ -322,20 +325,23 @@ class OperatorRuntime:
         def finish(frame: Frame) -> None:
             key = (frame.run, frame.seq)
             self.stats.frames_in += 1
-            failed = [
-                m
-                for m in (*frame.inputs.values(), *(x for d in frame.many.values() for x in d.values()))
-                if m.meta.get("error")
-            ]
+            received = (*frame.inputs.values(), *(x for d in frame.many.values() for x in d.values()))
+            failed = [m for m in received if m.meta.get("error")]
+            skipped = any(m.meta.get("skip") for m in received)
             if failed:
                 payloads = self._markers(frame.run, frame.seq, frame.stamp_ns, {"error": failed[0].meta["error"]})
+            elif skipped and not self.cls.ordered:
+                payloads = self._markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
             else:
                 start = time.perf_counter()
                 try:
                     outputs = self.operator.process(frame)
-                    payloads = self._encode_outputs(
-                        frame.run, frame.seq, frame.stamp_ns, outputs, {"partial": True} if frame.partial else {}
-                    )
+                    if skipped:  # an in-order operator saw the frame for its state; nobody scores it
+                        payloads = self._markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
+                    else:
+                        payloads = self._encode_outputs(
+                            frame.run, frame.seq, frame.stamp_ns, outputs, {"partial": True} if frame.partial else {}
+                        )
                 except Exception as exc:  # one bad frame must not stop the operator
                     self.stats.errors += 1
                     self.log.exception("frame %s failed: %s", frame.frame_id, exc)

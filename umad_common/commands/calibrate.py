@@ -60,8 +60,7 @@ def sha256(path: Path) -> str:
 
 def calibration_drives(data: Path, record: dict) -> tuple[list[Path], str]:
     """The drives to calibrate on and why: the model's held-out normal drives when it names them."""
-    from umad_common.datasets.anovox import find_scenarios
-    from umad_common.training.train_features import normal_root
+    from umad_common.datasets.anovox import find_scenarios, normal_root
 
     root = normal_root(data)
     drives = find_scenarios(root)
@@ -104,9 +103,9 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from operators.world_model import WorldModelPredictor
+    from umad_common.datasets.anovox import label_free_scenario
     from umad_common.differences import METRICS, CalibrationFitter, MetricOptions, build_metric
-    from umad_common.models.world_model import weight_paths
-    from umad_common.training.train_features import label_free_scenario
+    from umad_common.models.weights import weight_paths
 
     if args.frames < 1:
         raise SystemExit(f"--frames is {args.frames}; expected at least 1")

@@ -48,7 +48,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--mnad", type=Path, default=ASSETS / "mnad.safetensors", help="MNAD baseline weights")
     parser.add_argument(
-        "--every", type=int, default=2, help="evaluate every k-th frame of each scenario (the paper: 10)"
+        "--every",
+        type=int,
+        default=2,
+        help="score every k-th frame of each scenario (the paper: 10); the world model still sees every frame",
     )
     parser.add_argument(
         "--scenarios",
@@ -142,7 +145,7 @@ def _eval_graph(args: argparse.Namespace, source: Path) -> dict:
     for op in data["operators"]:
         by_kind.setdefault(op.get("kind", ""), []).append(op)
     for op in by_kind.get("replayer", []):
-        op.setdefault("params", {}).update({"source": str(source), "every": args.every})
+        op.setdefault("params", {}).update({"source": str(source), "every": 1, "score_every": args.every})
     for op in by_kind.get("world_model", []):
         op.setdefault("params", {})["model"] = str(args.world_model.resolve())
     for op in by_kind.get("difference", []):

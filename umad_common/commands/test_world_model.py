@@ -1,7 +1,9 @@
 """`umad test world-model MODEL DATA`: how good a trained world model is, before it goes in a graph.
 
-Prints held-out normal PSNR (reconstruction and one-step prediction) and, on DATA/anomalous, the
-mean |error| inside anomalies against road pixels outside them (the ratio must be well above 1).
+DATA is any AnoVox folder: a benchmark (normal/ and anomalous/) or a folder of normal drives. Prints,
+on the normal drives the model never trained on (named in MODEL.json), the PSNR of the
+reconstruction and of the predictions 1..horizon steps ahead, and, on DATA/anomalous, the mean
+|error| inside anomalies against road pixels outside them (the ratio must be well above 1).
 """
 
 from __future__ import annotations
@@ -13,8 +15,12 @@ from pathlib import Path
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", type=Path, help="MODEL or MODEL.safetensors (with MODEL.json beside it)")
-    parser.add_argument("data", type=Path, help="the benchmark folder it was trained on (normal/ and anomalous/)")
-    parser.add_argument("--anomalous-limit", type=int, default=None, help="evaluate only the first N anomalous drives")
+    parser.add_argument(
+        "data", type=Path, help="AnoVox folder: a benchmark (normal/ and anomalous/) or a folder of normal drives"
+    )
+    parser.add_argument("--horizon", type=int, default=3, help="prediction steps to score (default 3)")
+    parser.add_argument("--normal-limit", type=int, default=None, help="score only the first N unseen normal drives")
+    parser.add_argument("--anomalous-limit", type=int, default=None, help="score only the first N anomalous drives")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
 
 
@@ -22,10 +28,19 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from umad_common.models.world_model import load_world_model
-    from umad_common.training.evaluate_world_model import evaluate_world_model
+    from umad_common.training.evaluate_world_model import evaluate_world_model, unseen_normal_drives
 
+    if args.horizon < 1:
+        raise SystemExit(f"--horizon is {args.horizon}; expected at least 1")
     torch.set_num_threads(args.threads)
     model, record = load_world_model(args.model)
-    figures = evaluate_world_model(model, args.data, record.get("heldout_drives", []), args.anomalous_limit)
+    if not unseen_normal_drives(args.data, record) and not (args.data / "anomalous").is_dir():
+        raise SystemExit(
+            f"{args.data}: no normal drive the model did not train on and no anomalous/ folder; expected "
+            "AnoVox drives it never saw"
+        )
+    figures = evaluate_world_model(
+        model, args.data, record, args.horizon, normal_limit=args.normal_limit, anomalous_limit=args.anomalous_limit
+    )
     print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in figures.items()}, indent=2))
     return 0

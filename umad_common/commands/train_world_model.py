@@ -1,8 +1,11 @@
 """`umad train world-model DATA --out MODEL`: train the world model on the normal drives of DATA.
 
 Reads DATA/normal when it exists (a generated benchmark), else every Scenario_* under DATA; never
-reads labels. Writes MODEL.safetensors, MODEL.json (config, held-out drives, loss history) and the
-resumable checkpoint MODEL.train.pt (not needed to use the model).
+reads labels. Writes MODEL.safetensors, MODEL.json (the full model and training configs, the
+command that trained it, held-out drives, loss history) and the resumable checkpoint
+MODEL.train.pt (not needed to use the model). `--config MODEL.json` trains with the configs of a
+saved model: `umad train world-model DATA --out NEW --config umad_common/assets/world_model.json`
+rebuilds the shipped one.
 """
 
 from __future__ import annotations
@@ -10,7 +13,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 from pathlib import Path
+
+DEFAULT_EPOCHS = 10
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -18,8 +24,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", type=Path, required=True, help="output path without suffix, e.g. umad_common/assets/world_model"
     )
-    parser.add_argument("--epochs", type=int, default=16, help="total epochs (with --resume: up to this many)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of initialisation, window order and latent noise")
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="a saved MODEL.json (or any JSON with 'config' and 'train_config'): train with its configs; "
+        "flags given here override them",
+    )
+    parser.add_argument(
+        "--epochs", type=int, default=None, help=f"total epochs (default {DEFAULT_EPOCHS}, or the --config's)"
+    )
+    parser.add_argument("--seed", type=int, default=None, help="seed of initialisation, window order and latent noise")
     parser.add_argument(
         "--resume", action="store_true", help="continue from MODEL.train.pt with the configs stored in it"
     )
@@ -32,29 +47,63 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frame-step", type=int, default=None, help="dataset frames per model step (default 1)")
 
 
+def configs_of(args: argparse.Namespace):
+    """(model config, train config, epochs, seed) the command trains with: the code's defaults, or the
+    `--config` file's, with the flags given on the command line on top."""
+    from umad_common.models.world_model import WorldModelConfig
+    from umad_common.training.train_world_model import TrainConfig
+
+    model_config, train, epochs, seed = WorldModelConfig(), TrainConfig(), DEFAULT_EPOCHS, 0
+    if args.config is not None:
+        try:
+            saved = json.loads(args.config.read_text())
+            model_config = WorldModelConfig.from_dict(saved["config"])
+            train = TrainConfig(**saved["train_config"])
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise SystemExit(
+                f"{args.config}: not a world model config ({exc}); expected JSON with 'config' and 'train_config' "
+                "objects, as MODEL.json"
+            ) from None
+        epochs, seed = int(saved.get("epochs", epochs)), int(saved.get("seed", seed))
+    for name in ("batch_size", "sequence_length", "holdout"):
+        if getattr(args, name) is not None:
+            setattr(train, name, getattr(args, name))
+    if args.frame_step is not None:
+        model_config.frame_step = args.frame_step
+    epochs = epochs if args.epochs is None else args.epochs
+    seed = seed if args.seed is None else args.seed
+    if epochs < 1:
+        raise SystemExit(f"--epochs is {epochs}; expected at least 1")
+    return model_config, train, epochs, seed
+
+
+def command_line(args: argparse.Namespace) -> str:
+    """The command as it was given (flags left at their defaults omitted), for the model's record."""
+    words = ["umad", "train", "world-model", str(args.data), "--out", str(args.out)]
+    for flag in ("config", "epochs", "seed", "batch_size", "sequence_length", "holdout", "frame_step"):
+        if getattr(args, flag) is not None:
+            words += ["--" + flag.replace("_", "-"), str(getattr(args, flag))]
+    words += ["--threads", str(args.threads)] + (["--resume"] if args.resume else [])
+    return shlex.join(words)
+
+
 def run(args: argparse.Namespace) -> int:
     # On a shared machine, OpenMP threads that spin while waiting make 2 threads slower than 1;
     # passive waiting must be chosen before torch loads its OpenMP runtime.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    from umad_common.models.world_model import WorldModelConfig
-    from umad_common.training.train_world_model import TrainConfig, train_world_model
+    from umad_common.training.train_world_model import train_world_model
 
-    train = TrainConfig()
-    for name in ("batch_size", "sequence_length", "holdout"):
-        if getattr(args, name) is not None:
-            setattr(train, name, getattr(args, name))
-    model_config = WorldModelConfig(frame_step=args.frame_step or 1)
-    if args.epochs < 1:
-        raise SystemExit(f"--epochs is {args.epochs}; expected at least 1")
+    model_config, train, epochs, seed = configs_of(args)
     record = train_world_model(
         args.data,
         args.out,
-        epochs=args.epochs,
-        seed=args.seed,
+        epochs=epochs,
+        seed=seed,
         resume=args.resume,
         threads=args.threads,
         model_config=model_config,
         train_config=train,
+        command=command_line(args),
     )
     last = record["history"][-1]
     summary = {k: round(v, 5) if isinstance(v, float) else v for k, v in last.items()}

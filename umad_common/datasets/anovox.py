@@ -115,6 +115,12 @@ def find_scenarios(root: str | Path) -> list[Path]:
     return sorted(p for p in root.rglob("Scenario_*") if is_scenario_dir(p))
 
 
+def normal_root(data: str | Path) -> Path:
+    """DATA/normal for a generated benchmark, else DATA itself (a folder of normal scenarios)."""
+    data = Path(data)
+    return data / "normal" if (data / "normal").is_dir() else data
+
+
 def frame_number(path: Path) -> int | None:
     match = _FRAME_NUMBER.search(path.name)
     return int(match.group(1)) if match else None
@@ -445,3 +451,15 @@ def write_benchmark_scenario(
         if frame.lidar is not None:
             write_pcd(root / "PCD" / f"PCD_{fid}.pcd", frame.lidar, binary=binary_pcd)
     return root
+
+
+SENSOR_MODALITIES = ("rgb", "lidar", "action", "route")  # what the world model sees; never labels
+
+
+def label_free_scenario(path: Path, every: int = 1, keep: tuple[str, ...] = SENSOR_MODALITIES) -> AnoVoxScenario:
+    """An AnoVoxScenario that cannot open label files: modalities outside `keep` (semantic,
+    instance, anomaly, depth) are hidden from the reader, which then returns None for them. What
+    trains or calibrates a model on normal drives reads them through this."""
+    scenario = AnoVoxScenario(path, every=every)
+    scenario.folders = {key: folder for key, folder in scenario.folders.items() if key in keep}
+    return scenario

@@ -15,7 +15,6 @@ stateless. Input: (B, 3, 128, 192) in [-1, 1]; output the same through tanh.
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import NamedTuple
@@ -26,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from umad_common.models.weights import WeightsError
+from umad_common.models.weights import WeightsError, load_tensors, read_record, save_weights, weight_paths
 
 
 @dataclass
@@ -204,50 +203,16 @@ def to_input(rgb: np.ndarray, cfg: MnadConfig) -> torch.Tensor:
     return x.unsqueeze(0)
 
 
-def weight_paths(path: str | Path) -> tuple[Path, Path]:
-    """`dir/name` or `dir/name.safetensors` -> (dir/name.safetensors, dir/name.json)."""
-    path = Path(path)
-    stem = path.with_suffix("") if path.suffix in (".safetensors", ".json") else path
-    return stem.with_name(stem.name + ".safetensors"), stem.with_name(stem.name + ".json")
-
-
 def save_mnad(model: Mnad, path: str | Path, record: dict | None = None) -> Path:
     """Write the weights and memory (safetensors) and a JSON beside them: config + `record`."""
-    from safetensors.torch import save_file
-
-    weights, meta = weight_paths(path)
-    weights.parent.mkdir(parents=True, exist_ok=True)
-    save_file({k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}, str(weights))
-    meta.write_text(json.dumps({"config": model.cfg.to_dict(), **(record or {})}, indent=2) + "\n")
-    return weights
+    return save_weights(model, path, model.cfg.to_dict(), record)
 
 
 def load_mnad(path: str | Path) -> tuple[Mnad, dict]:
     """Load NAME.safetensors + NAME.json; returns the model in eval mode and the JSON record."""
-    from safetensors.torch import load_file
-
-    weights, meta = weight_paths(path)
-    for file in (weights, meta):
-        if not file.is_file():
-            raise WeightsError(f"{file}: MNAD file not found; expected {weights.name} with {meta.name} beside it")
+    record = read_record(path, "MNAD")
     try:
-        record = json.loads(meta.read_text())
         cfg = MnadConfig.from_dict(record["config"])
     except (ValueError, KeyError, TypeError) as exc:
-        raise WeightsError(f"{meta}: not an MNAD config ({exc}); expected JSON with a 'config' object") from None
-    model = Mnad(cfg)
-    try:
-        tensors = load_file(str(weights))
-    except Exception as exc:  # safetensors raises its own error types for corrupt files
-        raise WeightsError(f"{weights}: cannot read safetensors file ({exc})") from None
-    expected = model.state_dict()
-    missing, unexpected = sorted(set(expected) - set(tensors)), sorted(set(tensors) - set(expected))
-    if missing or unexpected:
-        raise WeightsError(f"{weights}: tensors missing {missing[:5]}, unexpected {unexpected[:5]} for {meta.name}")
-    for name, tensor in expected.items():
-        if tuple(tensors[name].shape) != tuple(tensor.shape):
-            raise WeightsError(
-                f"{weights}: tensor {name!r} has shape {tuple(tensors[name].shape)}; expected {tuple(tensor.shape)}"
-            )
-    model.load_state_dict(tensors)
-    return model.eval().requires_grad_(False), record
+        raise WeightsError(f"{weight_paths(path)[1]}: not an MNAD config ({exc})") from None
+    return load_tensors(Mnad(cfg), path).eval().requires_grad_(False), record

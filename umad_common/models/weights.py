@@ -1,6 +1,73 @@
-"""The one error every model loader raises for a weight file that cannot be used."""
+"""Weight files of every model: NAME.safetensors with NAME.json beside it (the config and the
+training record), and the one error every loader raises for a file that cannot be used."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from safetensors.torch import load_file, save_file
+from torch import nn
 
 
 class WeightsError(ValueError):
     """A weight file is missing, unreadable or does not fit the model: names the file, the tensor or
     key, and the shape expected against the shape found."""
+
+
+def weight_paths(path: str | Path) -> tuple[Path, Path]:
+    """`dir/name`, `dir/name.safetensors` or `dir/name.json` -> (dir/name.safetensors, dir/name.json)."""
+    path = Path(path)
+    stem = path.with_suffix("") if path.suffix in (".safetensors", ".json") else path
+    return stem.with_name(stem.name + ".safetensors"), stem.with_name(stem.name + ".json")
+
+
+def save_weights(model: nn.Module, path: str | Path, config: dict, record: dict | None = None) -> Path:
+    """Write the model's tensors (safetensors) and a JSON beside them: `config` and `record`."""
+    weights, meta = weight_paths(path)
+    weights.parent.mkdir(parents=True, exist_ok=True)
+    save_file({k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}, str(weights))
+    meta.write_text(json.dumps({"config": config, **(record or {})}, indent=2) + "\n")
+    return weights
+
+
+def read_record(path: str | Path, what: str) -> dict:
+    """The JSON record beside a weight file, checked to hold a 'config' object.
+
+    Raises:
+        WeightsError: either file is missing, or the JSON is not a record with a config.
+    """
+    weights, meta = weight_paths(path)
+    for file in (weights, meta):
+        if not file.is_file():
+            raise WeightsError(f"{file}: {what} file not found; expected {weights.name} with {meta.name} beside it")
+    try:
+        record = json.loads(meta.read_text())
+    except ValueError as exc:
+        raise WeightsError(f"{meta}: not JSON ({exc}); expected the {what} config and training record") from None
+    if not isinstance(record, dict) or not isinstance(record.get("config"), dict):
+        raise WeightsError(f"{meta}: no 'config' object; expected the {what} config and training record")
+    return record
+
+
+def load_tensors(model: nn.Module, path: str | Path) -> nn.Module:
+    """Fill `model` from the safetensors file, checking every tensor's name and shape first."""
+    weights, meta = weight_paths(path)
+    try:
+        tensors = load_file(str(weights))
+    except Exception as exc:  # safetensors raises its own error types for corrupt files
+        raise WeightsError(f"{weights}: cannot read safetensors file ({exc})") from None
+    expected = model.state_dict()
+    missing, unexpected = sorted(set(expected) - set(tensors)), sorted(set(tensors) - set(expected))
+    if missing or unexpected:
+        raise WeightsError(
+            f"{weights}: tensors missing {missing[:5]}, unexpected {unexpected[:5]} for config {meta.name}"
+        )
+    for name, tensor in expected.items():
+        if tuple(tensors[name].shape) != tuple(tensor.shape):
+            raise WeightsError(
+                f"{weights}: tensor {name!r} has shape {tuple(tensors[name].shape)}; "
+                f"expected {tuple(tensor.shape)} for config {meta.name}"
+            )
+    model.load_state_dict(tensors)
+    return model

@@ -1,20 +1,23 @@
-"""The UMAD world model: multimodal, action-conditioned latent dynamics (RSSM, as in MILE/MUVO).
+"""The UMAD world model: multimodal, action-conditioned latent dynamics on a spatial grid (RSSM).
 
-Per model step t the camera image, the lidar (as a 64 x W range image), the route map and the speed
-are encoded into one embedding; a recurrent state s_t = (h_t, z_t) holds a deterministic GRU path
-h_t and a small stochastic latent z_t, a Gaussian map on a coarse grid (4 channels on 8 x 12 cells
-for a 128 x 192 image):
+Per model step t the camera image is encoded onto a coarse grid (image size / 8: 16 x 24 cells for
+a 128 x 192 image); the lidar (as a 64 x W range image), the route map and the speed are encoded
+into one vector that is broadcast onto the same grid. The recurrent state s_t = (h_t, z_t) lives on
+that grid: a deterministic convolutional GRU map h_t and a stochastic Gaussian map z_t:
 
-    h_t = GRU(h_{t-1}, [z_{t-1}, a_{t-1}])      a = [throttle - brake, steer], the control after t-1
+    h_t = ConvGRU(h_{t-1}, [z_{t-1}, a_{t-1}])  a = [throttle - brake, steer], the control after t-1
     prior      p(z_t | h_t)                     what the model expects without looking
     posterior  q(z_t | h_t, embed(o_t))         what it believes after looking
-    decoders   (h_t, z_t) -> RGB image, lidar range
+    decoder    (h_t, z_t) -> RGB image
 
-`observe` runs the posterior over a sequence and reconstructs every frame; `imagine` rolls the prior
-forward with given actions and decodes predicted frames. The image reaches the decoder only through
-the state (h: 256 numbers, z: 384 by default; no skip connections), so the model can only draw what
-its training on normal driving taught it: an object it never saw is not reproduced, and that is the
-signal.
+A spatial state lets the model keep the layout of the scene it has seen (where the road, the
+facades, the lane marks are) and move it with the car's motion, so the prior can predict frames
+and the posterior needs only a few nats per cell to correct it. `observe` runs the posterior over a
+sequence and reconstructs every frame; `imagine` rolls the prior forward with given actions and
+decodes predicted frames. The image reaches the decoder only through the state (no skip connections
+from encoder to decoder), and the posterior pays for every nat it moves away from the prior (the
+KL term in training), so the model draws what normal driving taught it to expect: an object it
+never saw is not reproduced, and that is the signal.
 
 The preprocessing that defines the inputs (plain resize without crop, lidar range projection) lives
 here too, so training, evaluation and the predictor operator feed the model identically.
@@ -22,7 +25,6 @@ here too, so training, evaluation and the predictor operator feed the model iden
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import NamedTuple
@@ -31,18 +33,20 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
-from safetensors.torch import load_file, save_file
 from torch import nn
 
-from umad_common.models.weights import WeightsError
+from umad_common.models.weights import WeightsError, load_tensors, read_record, save_weights, weight_paths
 
 
 @dataclass
 class WorldModelConfig:
     image_height: int = 128  # camera resized (no crop) to image_height x image_width
     image_width: int = 192
-    image_channels: tuple[int, ...] = (16, 32, 64)  # conv widths, one stride-2 stage each; the
-    #   latent grid is image size / 2**len(image_channels) (16 x 24 by default)
+    image_channels: tuple[int, ...] = (32, 64, 128)  # encoder widths, one stride-2 stage each; the latent
+    #   grid is image size / 2**len(image_channels) (16 x 24 by default)
+    decoder_channels: tuple[int, ...] = (128, 64, 32, 16)  # decoder widths: [0] on the grid, then one per
+    #   x2 upsampling stage (len(image_channels) + 1 entries)
+    res_blocks: int = 1  # residual 3x3 blocks on the grid, in the encoder and in the decoder
     lidar_rows: int = 64  # range image rows = lidar channels
     lidar_width: int = 128  # range image columns (360 degrees of azimuth)
     lidar_fov_up: float = 15.0  # degrees above the horizon covered by the top row
@@ -54,23 +58,27 @@ class WorldModelConfig:
     route_channels: tuple[int, ...] = (16, 32, 32, 32)
     route_embed: int = 64
     speed_scale: float = 5.0  # speed input = speed_mps / speed_scale
-    deter_dim: int = 256  # GRU state h (vector): the memory of the drive so far
-    stoch_channels: int = 4  # Gaussian latent z, stoch_channels x grid: the only per-frame path from the image
-    context_channels: int = 8  # h projected onto the latent grid for the prior, posterior and decoder
+    deter_channels: int = 64  # channels of the deterministic GRU map h: the memory of the drive so far
+    stoch_channels: int = 16  # channels of the Gaussian map z: the only per-frame path from the image
     side_channels: int = 16  # lidar + route + speed embedding, broadcast onto the latent grid
-    hidden_dim: int = 256  # width of the transition MLP (and channels of the prior / posterior convs / 4)
+    hidden_channels: int = 64  # width of the prior and posterior heads
+    transition_kernel: int = 5  # kernel of the ConvGRU: how far (in cells) the scene can move per step
     min_std: float = 0.1  # floor of the latent standard deviation
-    decode_lidar: bool = True  # also reconstruct the lidar range channel (auxiliary loss)
     frame_step: int = 1  # dataset frames per model step the model was trained with
 
     def __post_init__(self) -> None:
-        for name in ("image_channels", "lidar_channels", "route_channels"):
+        for name in ("image_channels", "decoder_channels", "lidar_channels", "route_channels"):
             setattr(self, name, tuple(int(c) for c in getattr(self, name)))
         factor = 2 ** len(self.image_channels)
         if self.image_height % factor or self.image_width % factor:
             raise ValueError(
                 f"image size {self.image_height}x{self.image_width} must be divisible by {factor} "
                 f"(2 ** len(image_channels))"
+            )
+        if len(self.decoder_channels) != len(self.image_channels) + 1:
+            raise ValueError(
+                f"decoder_channels {self.decoder_channels} has {len(self.decoder_channels)} entries; expected "
+                f"len(image_channels) + 1 = {len(self.image_channels) + 1} (the grid, then one per upsampling)"
             )
         lidar_factor = 2 ** len(self.lidar_channels)
         if self.lidar_rows % lidar_factor or self.lidar_width % lidar_factor:
@@ -79,6 +87,8 @@ class WorldModelConfig:
             )
         if self.route_size % 2 ** len(self.route_channels):
             raise ValueError(f"route_size {self.route_size} must be divisible by {2 ** len(self.route_channels)}")
+        if self.transition_kernel % 2 == 0:
+            raise ValueError(f"transition_kernel {self.transition_kernel} must be odd")
 
     @property
     def grid(self) -> tuple[int, int]:
@@ -87,12 +97,12 @@ class WorldModelConfig:
         return self.image_height >> stages, self.image_width >> stages
 
     @property
-    def stoch_dim(self) -> int:
-        return self.stoch_channels * self.grid[0] * self.grid[1]
+    def deter_dim(self) -> int:
+        return self.deter_channels * self.grid[0] * self.grid[1]
 
     @property
-    def state_dim(self) -> int:
-        return self.deter_dim + self.stoch_dim
+    def stoch_dim(self) -> int:
+        return self.stoch_channels * self.grid[0] * self.grid[1]
 
     def to_dict(self) -> dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
@@ -179,16 +189,27 @@ def conv_stack(in_channels: int, channels: tuple[int, ...]) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-def deconv_stack(channels: tuple[int, ...], out_channels: int) -> nn.Sequential:
-    """Stride-2 4x4 transposed convolutions from channels[0] up to out_channels (no final activation)."""
-    layers: list[nn.Module] = []
-    for i, in_channels in enumerate(channels):
-        last = i == len(channels) - 1
-        layers.append(
-            nn.ConvTranspose2d(in_channels, out_channels if last else channels[i + 1], 4, stride=2, padding=1)
+class ResBlock(nn.Module):
+    """x + conv3x3(silu(conv3x3(x))): more depth on the grid at no cost in resolution."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.body = nn.Sequential(
+            nn.Conv2d(channels, channels, 3, padding=1), nn.SiLU(), nn.Conv2d(channels, channels, 3, padding=1)
         )
-        if not last:
-            layers.append(nn.SiLU())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.silu(x + self.body(x))
+
+
+def upsample_stack(channels: tuple[int, ...], out_channels: int) -> nn.Sequential:
+    """From channels[0] on the grid, per further entry: nearest x2 upsampling and a 3x3 convolution
+    (no transposed convolutions: they leave a checkerboard the difference maps would see); then a
+    3x3 convolution to out_channels (no final activation)."""
+    layers: list[nn.Module] = []
+    for in_channels, next_channels in zip(channels[:-1], channels[1:], strict=True):
+        layers += [nn.Upsample(scale_factor=2.0), nn.Conv2d(in_channels, next_channels, 3, padding=1), nn.SiLU()]
+    layers.append(nn.Conv2d(channels[-1], out_channels, 3, padding=1))
     return nn.Sequential(*layers)
 
 
@@ -205,17 +226,20 @@ class VectorEncoder(nn.Module):
         return self.out(self.convs(x).flatten(1))
 
 
-class VectorDecoder(nn.Module):
-    """(B, state) -> (B, out_channels, H, W): one linear layer to a small grid, then a deconv stack."""
+class ConvGRUCell(nn.Module):
+    """A GRU whose state is a map and whose gates are convolutions (the DreamerV2 variant: the reset
+    gate scales the candidate, the update gate starts biased towards keeping the state)."""
 
-    def __init__(self, state_dim: int, channels: tuple[int, ...], height: int, width: int, out_channels: int):
+    def __init__(self, in_channels: int, channels: int, kernel: int):
         super().__init__()
-        self.grid = (channels[0], height >> len(channels), width >> len(channels))
-        self.inp = nn.Linear(state_dim, self.grid[0] * self.grid[1] * self.grid[2])
-        self.deconvs = deconv_stack(channels, out_channels)
+        self.gates = nn.Conv2d(in_channels + channels, 3 * channels, kernel, padding=kernel // 2)
+        self.norm = nn.GroupNorm(1, 3 * channels)
 
-    def forward(self, state: torch.Tensor) -> torch.Tensor:
-        return self.deconvs(F.silu(self.inp(state)).view(-1, *self.grid))  # (B, C0, h0, w0) -> (B, out, H, W)
+    def forward(self, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        reset, candidate, update = self.norm(self.gates(torch.cat([x, h], dim=1))).chunk(3, dim=1)
+        candidate = torch.tanh(torch.sigmoid(reset) * candidate)
+        update = torch.sigmoid(update - 1.0)
+        return update * candidate + (1 - update) * h
 
 
 def grid_head(in_channels: int, hidden: int, out_channels: int) -> nn.Sequential:
@@ -233,8 +257,8 @@ class Observation(NamedTuple):
 
 
 class State(NamedTuple):
-    h: torch.Tensor  # (..., deter_dim) deterministic path
-    z: torch.Tensor  # (..., stoch_dim) stochastic latent, the grid (stoch_channels, rows, cols) flattened
+    h: torch.Tensor  # (..., deter_dim) deterministic map, (deter_channels, rows, cols) flattened
+    z: torch.Tensor  # (..., stoch_dim) stochastic map, (stoch_channels, rows, cols) flattened
 
 
 class ObserveResult(NamedTuple):
@@ -244,7 +268,6 @@ class ObserveResult(NamedTuple):
     post_mean: torch.Tensor
     post_std: torch.Tensor
     rgb: torch.Tensor  # (B, T, 3, H, W) reconstructions in [0, 1]
-    lidar_range: torch.Tensor | None  # (B, T, 1, rows, width) reconstructed range / lidar_scale
 
 
 class ImagineResult(NamedTuple):
@@ -260,31 +283,33 @@ class WorldModel(nn.Module):
     def __init__(self, config: WorldModelConfig):
         super().__init__()
         self.config = c = config
-        rows, cols = c.grid
-        head = c.hidden_dim // 4
-        self.image_encoder = conv_stack(3, c.image_channels)  # (B, C, rows, cols)
+        self.image_encoder = nn.Sequential(
+            conv_stack(3, c.image_channels), *(ResBlock(c.image_channels[-1]) for _ in range(c.res_blocks))
+        )  # (B, C, rows, cols)
         self.lidar_encoder = VectorEncoder(4, c.lidar_channels, c.lidar_rows, c.lidar_width, c.lidar_embed)
         self.route_encoder = VectorEncoder(1, c.route_channels, c.route_size, c.route_size, c.route_embed)
         self.side = nn.Linear(c.lidar_embed + c.route_embed + 1, c.side_channels)  # + speed
-        self.context = nn.Linear(c.deter_dim, c.context_channels * rows * cols)
-        self.transition_input = nn.Sequential(nn.Linear(c.stoch_dim + 2, c.hidden_dim), nn.SiLU())
-        self.gru = nn.GRUCell(c.hidden_dim, c.deter_dim)
-        self.prior_net = grid_head(c.context_channels, head, 2 * c.stoch_channels)
+        self.gru = ConvGRUCell(c.stoch_channels + 2, c.deter_channels, c.transition_kernel)
+        self.prior_net = grid_head(c.deter_channels, c.hidden_channels, 2 * c.stoch_channels)
         embed_channels = c.image_channels[-1] + c.side_channels
-        self.posterior_net = grid_head(c.context_channels + embed_channels, head, 2 * c.stoch_channels)
-        decoder_channels = tuple(reversed(c.image_channels))
-        self.decoder_input = nn.Conv2d(c.context_channels + c.stoch_channels, decoder_channels[0], 3, padding=1)
-        self.image_decoder = deconv_stack(decoder_channels, 3)
-        if c.decode_lidar:
-            lidar_dec = tuple(reversed(c.lidar_channels))
-            self.lidar_decoder = VectorDecoder(c.state_dim, lidar_dec, c.lidar_rows, c.lidar_width, 1)
+        self.posterior_net = grid_head(c.deter_channels + embed_channels, c.hidden_channels, 2 * c.stoch_channels)
+        self.image_decoder = nn.Sequential(
+            nn.Conv2d(c.deter_channels + c.stoch_channels, c.decoder_channels[0], 3, padding=1),
+            nn.SiLU(),
+            *(ResBlock(c.decoder_channels[0]) for _ in range(c.res_blocks)),
+            upsample_stack(c.decoder_channels, 3),
+        )
 
     # -- pieces ---------------------------------------------------------------------------------
 
     def initial_state(self, batch: int) -> State:
         """The state before a drive's first frame (zeros)."""
-        weight = self.gru.weight_hh
+        weight = self.prior_net[0].weight
         return State(weight.new_zeros(batch, self.config.deter_dim), weight.new_zeros(batch, self.config.stoch_dim))
+
+    def as_grid(self, flat: torch.Tensor) -> torch.Tensor:
+        """(B, C * rows * cols) -> (B, C, rows, cols)."""
+        return flat.view(flat.shape[0], -1, *self.config.grid)
 
     def embed(self, obs: Observation) -> torch.Tensor:
         """(B, T, ...) observations -> (B, T, C_image + side_channels, rows, cols) on the latent grid."""
@@ -302,35 +327,28 @@ class WorldModel(nn.Module):
         grid = torch.cat([image, side], dim=1)
         return grid.view(b, t, *grid.shape[1:])
 
-    def context_grid(self, h: torch.Tensor) -> torch.Tensor:
-        """(B, deter_dim) -> (B, context_channels, rows, cols)."""
-        return F.silu(self.context(h)).view(-1, self.config.context_channels, *self.config.grid)
-
     def _gaussian(self, params: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mean, raw_std = params.flatten(1).chunk(2, dim=-1)  # channel halves -> (B, stoch_dim) each
-        return mean, F.softplus(raw_std) + self.config.min_std
+        mean, raw_std = params.chunk(2, dim=1)  # channel halves -> (B, stoch_channels, rows, cols) each
+        return mean.flatten(1), F.softplus(raw_std).flatten(1) + self.config.min_std
 
     def transition(self, state: State, action: torch.Tensor) -> torch.Tensor:
         """h_t from s_{t-1} and the action a_{t-1} (B, 2) taken after it -> (B, deter_dim)."""
-        return self.gru(self.transition_input(torch.cat([state.z, action], dim=-1)), state.h)
+        z = self.as_grid(state.z)
+        action_grid = action[:, :, None, None].expand(-1, -1, *z.shape[2:])
+        return self.gru(torch.cat([z, action_grid], dim=1), self.as_grid(state.h)).flatten(1)
 
     def prior(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """p(z_t | h_t): mean and std, each (B, stoch_dim)."""
-        return self._gaussian(self.prior_net(self.context_grid(h)))
+        return self._gaussian(self.prior_net(self.as_grid(h)))
 
     def posterior(self, h: torch.Tensor, embed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """q(z_t | h_t, o_t) from h (B, deter_dim) and one step's embedding grid (B, E, rows, cols)."""
-        return self._gaussian(self.posterior_net(torch.cat([self.context_grid(h), embed], dim=1)))
+        return self._gaussian(self.posterior_net(torch.cat([self.as_grid(h), embed], dim=1)))
 
-    def decode(self, state: State, with_lidar: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """States (N, .) -> RGB (N, 3, H, W) in [0, 1] and range (N, 1, rows, width) (None when the
-        model has no lidar decoder or `with_lidar` is False)."""
-        z = state.z.view(-1, self.config.stoch_channels, *self.config.grid)
-        x = F.silu(self.decoder_input(torch.cat([self.context_grid(state.h), z], dim=1)))
-        rgb = torch.sigmoid(self.image_decoder(x))
-        with_lidar = with_lidar and self.config.decode_lidar
-        lidar = self.lidar_decoder(torch.cat([state.h, state.z], dim=-1)) if with_lidar else None
-        return rgb, lidar
+    def decode(self, state: State) -> torch.Tensor:
+        """States (N, .) -> RGB (N, 3, H, W) in [0, 1]."""
+        grid = torch.cat([self.as_grid(state.h), self.as_grid(state.z)], dim=1)
+        return torch.sigmoid(self.image_decoder(grid))
 
     # -- sequences ------------------------------------------------------------------------------
 
@@ -359,7 +377,7 @@ class WorldModel(nn.Module):
             hs.append(h)
             zs.append(z)
         states = State(torch.stack(hs, 1), torch.stack(zs, 1))  # (B, T, .)
-        rgb, lidar = self.decode(State(states.h.flatten(0, 1), states.z.flatten(0, 1)))
+        rgb = self.decode(State(states.h.flatten(0, 1), states.z.flatten(0, 1)))
         return ObserveResult(
             states=states,
             prior_mean=torch.stack([m for m, _ in prior_stats], 1),
@@ -367,7 +385,6 @@ class WorldModel(nn.Module):
             post_mean=torch.stack([m for m, _ in post_stats], 1),
             post_std=torch.stack([s for _, s in post_stats], 1),
             rgb=rgb.view(b, t, *rgb.shape[1:]),
-            lidar_range=None if lidar is None else lidar.view(b, t, *lidar.shape[1:]),
         )
 
     def imagine(self, state: State, actions: torch.Tensor, n: int | None = None) -> ImagineResult:
@@ -384,7 +401,7 @@ class WorldModel(nn.Module):
             hs.append(state.h)
             zs.append(state.z)
         states = State(torch.stack(hs, 1), torch.stack(zs, 1))
-        rgb, _ = self.decode(State(states.h.flatten(0, 1), states.z.flatten(0, 1)), with_lidar=False)
+        rgb = self.decode(State(states.h.flatten(0, 1), states.z.flatten(0, 1)))
         return ImagineResult(states, rgb.view(state.h.shape[0], n, *rgb.shape[1:]))
 
 
@@ -392,53 +409,16 @@ class WorldModel(nn.Module):
 # Weights on disk: MODEL.safetensors + MODEL.json (config and training record)
 
 
-def weight_paths(model: str | Path) -> tuple[Path, Path]:
-    """`path/name` or `path/name.safetensors` -> (path/name.safetensors, path/name.json)."""
-    model = Path(model)
-    stem = model.with_suffix("") if model.suffix in (".safetensors", ".json") else model
-    return stem.with_name(stem.name + ".safetensors"), stem.with_name(stem.name + ".json")
-
-
 def save_world_model(model: WorldModel, path: str | Path, record: dict | None = None) -> Path:
     """Write the weights (safetensors) and a JSON beside them with the config and `record`."""
-    weights, meta = weight_paths(path)
-    weights.parent.mkdir(parents=True, exist_ok=True)
-    tensors = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
-    save_file(tensors, str(weights))
-    meta.write_text(json.dumps({"config": model.config.to_dict(), **(record or {})}, indent=2) + "\n")
-    return weights
+    return save_weights(model, path, model.config.to_dict(), record)
 
 
 def load_world_model(path: str | Path) -> tuple[WorldModel, dict]:
     """Load MODEL.safetensors + MODEL.json; returns the model (eval mode) and the JSON record."""
-    weights, meta = weight_paths(path)
-    for file in (weights, meta):
-        if not file.is_file():
-            raise WeightsError(
-                f"{file}: world model file not found; expected {weights.name} with {meta.name} beside it"
-            )
+    record = read_record(path, "world model")
     try:
-        record = json.loads(meta.read_text())
         config = WorldModelConfig.from_dict(record["config"])
-    except (ValueError, KeyError, TypeError) as exc:
-        raise WeightsError(f"{meta}: not a world model config ({exc}); expected JSON with a 'config' object") from None
-    model = WorldModel(config)
-    try:
-        tensors = load_file(str(weights))
-    except Exception as exc:  # safetensors raises its own error types for corrupt files
-        raise WeightsError(f"{weights}: cannot read safetensors file ({exc})") from None
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(tensors))
-    unexpected = sorted(set(tensors) - set(expected))
-    if missing or unexpected:
-        raise WeightsError(
-            f"{weights}: tensors missing {missing[:5]}, unexpected {unexpected[:5]} for config {meta.name}"
-        )
-    for name, tensor in expected.items():
-        if tuple(tensors[name].shape) != tuple(tensor.shape):
-            raise WeightsError(
-                f"{weights}: tensor {name!r} has shape {tuple(tensors[name].shape)}; "
-                f"expected {tuple(tensor.shape)} for config {meta.name}"
-            )
-    model.load_state_dict(tensors)
-    return model.eval(), record
+    except (ValueError, TypeError) as exc:
+        raise WeightsError(f"{weight_paths(path)[1]}: not a world model config ({exc})") from None
+    return load_tensors(WorldModel(config), path).eval(), record

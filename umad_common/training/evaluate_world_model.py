@@ -1,7 +1,12 @@
-"""How good is a trained world model: held-out normal PSNR and the anomaly / road error ratio.
+"""How good is a trained world model: PSNR on normal drives it never saw, and the anomaly / road
+error ratio.
 
-- Held-out normal drives (named in MODEL.json, kept out of training): PSNR of the posterior
-  reconstruction x̂_t and of the one-step prediction x̂_{t|t-1} (decoded prior).
+- Normal drives the model never saw: every Scenario_* under DATA/normal (or DATA) that is not one
+  of the `training_drives` named in MODEL.json, so the training folder gives its held-out drives
+  and any other folder of normal drives gives all of them. Per drive, the posterior is filtered
+  from the drive's start; figures: PSNR of the reconstruction x̂_t and of the predictions
+  x̂_{t|t-k} for k = 1..horizon (the prior rolled k steps forward from the posterior state of
+  frame t-k with the actions actually taken, never having seen the frames since).
 - Anomalous drives (DATA/anomalous): mean |x − x̂_t| (over r, g, b) inside the anomaly mask against
   the same on road pixels outside it (semantic tag 1 road or 24 road line). The model never saw an
   anomaly, so it should not draw one: the ratio must be well above 1. Labels are resized
@@ -18,35 +23,53 @@ import cv2
 import numpy as np
 import torch
 
+from umad_common.datasets.anovox import AnoVoxScenario, find_scenarios, label_free_scenario, normal_root
 from umad_common.models.world_model import State, WorldModel
-from umad_common.training.train_world_model import (
-    DriveArrays,
-    load_drive,
-    normal_root,
-    observation_batch,
-    open_inputs_only,
-    psnr,
-    scale_speed,
-)
+from umad_common.training.train_world_model import DriveArrays, load_drive, observation_batch, psnr, scale_speed
 
 ROAD_TAGS = (1, 24)
 
 
 @torch.no_grad()
-def reconstruct_drive(model: WorldModel, drive: DriveArrays, chunk: int = 32) -> tuple[np.ndarray, np.ndarray]:
-    """Filter a whole drive from its start; returns reconstructions and one-step predictions, both
-    (T, H, W, 3) float32 in [0, 1] (the prediction of frame 0 is from the initial state)."""
-    recons, preds = [], []
+def filter_drive(model: WorldModel, drive: DriveArrays, chunk: int = 32) -> tuple[State, np.ndarray]:
+    """The posterior over a whole drive from its start: states (T, .) and reconstructions
+    (T, H, W, 3) float32 in [0, 1]."""
+    hs, zs, recons = [], [], []
     state = None
     for start in range(0, len(drive), chunk):
         length = min(chunk, len(drive) - start)
         obs, prev_actions = observation_batch([drive], [(0, start)], length)
         result = model.observe(scale_speed(obs, model.config), prev_actions, state=state)
         state = State(result.states.h[:, -1], result.states.z[:, -1])
-        prior_rgb, _ = model.decode(State(result.states.h[0], result.prior_mean[0]), with_lidar=False)
+        hs.append(result.states.h[0])
+        zs.append(result.states.z[0])
         recons.append(result.rgb[0].permute(0, 2, 3, 1).numpy())
-        preds.append(prior_rgb.permute(0, 2, 3, 1).numpy())
-    return np.concatenate(recons), np.concatenate(preds)
+    return State(torch.cat(hs), torch.cat(zs)), np.concatenate(recons)
+
+
+@torch.no_grad()
+def predict_drive(model: WorldModel, drive: DriveArrays, posterior: State, horizon: int, chunk: int = 32):
+    """Yields (k, frames, predicted) for k = 1..horizon: the frames t >= k of the drive and the
+    predictions x̂_{t|t-k} (len, H, W, 3), made by advancing the prior one step at a time with the
+    action taken after each frame, from the posterior state of frame t-k."""
+    actions = torch.from_numpy(drive.action)  # (T, 2) the action taken after frame t
+    states = posterior
+    for k in range(1, horizon + 1):
+        if len(drive) <= k:
+            return
+        h = model.transition(State(states.h[:-1], states.z[:-1]), actions[k - 1 : len(drive) - 1])
+        states = State(h, model.prior(h)[0])  # row j: prediction of frame j + k
+        images = [
+            model.decode(State(states.h[i : i + chunk], states.z[i : i + chunk])).permute(0, 2, 3, 1).numpy()
+            for i in range(0, len(h), chunk)
+        ]
+        yield k, np.arange(k, len(drive)), np.concatenate(images)
+
+
+def unseen_normal_drives(data: Path, record: dict) -> list[Path]:
+    """Normal drives under DATA that the model did not train on (by the names in its record)."""
+    trained = set(record.get("training_drives") or [])
+    return [p for p in find_scenarios(normal_root(Path(data))) if p.name not in trained]
 
 
 def label_masks(scenario, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -64,51 +87,57 @@ def label_masks(scenario, height: int, width: int) -> tuple[np.ndarray, np.ndarr
 
 
 def evaluate_world_model(
-    model: WorldModel, data: Path, heldout: list[str], anomalous_limit: int | None = None
+    model: WorldModel,
+    data: Path,
+    record: dict,
+    horizon: int = 3,
+    normal_limit: int | None = None,
+    anomalous_limit: int | None = None,
 ) -> dict[str, float | int]:
-    """Figures of `model` on DATA: held-out normal drives by name, and DATA/anomalous (up to
-    `anomalous_limit` drives). Returns PSNRs, the error inside / outside anomalies and their ratio."""
-    from umad_common.datasets.anovox import AnoVoxScenario, find_scenarios
-
+    """Figures of `model` on DATA: its unseen normal drives (up to `normal_limit`) and DATA/anomalous
+    (up to `anomalous_limit` drives). Returns PSNRs (reconstruction, prediction k = 1..horizon),
+    the error inside / outside anomalies and their ratio."""
     config = model.config
     model.eval()
     figures: dict[str, float | int] = {}
-    heldout_paths = [p for p in find_scenarios(normal_root(Path(data))) if p.name in set(heldout)]
-    recon_se, pred_se, values = 0.0, 0.0, 0
-    for path in heldout_paths:
-        drive = load_drive(open_inputs_only(path, config.frame_step), config)
-        recon, pred = reconstruct_drive(model, drive)
+    normal = unseen_normal_drives(data, record)[:normal_limit]
+    squared = {k: 0.0 for k in range(horizon + 1)}  # k = 0: the reconstruction
+    counts = {k: 0 for k in range(horizon + 1)}
+    for path in normal:
+        drive = load_drive(label_free_scenario(path, config.frame_step), config)
         target = drive.rgb.astype(np.float32) / 255.0
-        recon_se += float(((recon - target) ** 2).sum())
-        pred_se += float(((pred[1:] - target[1:]) ** 2).sum())
-        values += target.size
-    if values:
-        frames = values // (config.image_height * config.image_width * 3)
-        figures["heldout_drives"] = len(heldout_paths)
-        figures["heldout_recon_psnr"] = psnr(recon_se / values)
-        figures["heldout_pred1_psnr"] = psnr(
-            pred_se / (values - 3 * config.image_height * config.image_width * len(heldout_paths))
-        )
-        figures["heldout_frames"] = int(frames)
+        posterior, recon = filter_drive(model, drive)
+        squared[0] += float(((recon - target) ** 2).sum())
+        counts[0] += target.size
+        for k, frames, predicted in predict_drive(model, drive, posterior, horizon):
+            squared[k] += float(((predicted - target[frames]) ** 2).sum())
+            counts[k] += predicted.size
+    if normal:
+        figures["normal_drives"] = len(normal)
+        figures["normal_frames"] = counts[0] // (config.image_height * config.image_width * 3)
+        figures["recon_psnr"] = psnr(squared[0] / counts[0])
+        for k in range(1, horizon + 1):
+            if counts[k]:
+                figures[f"pred{k}_psnr"] = psnr(squared[k] / counts[k])
 
     anomalous_root = Path(data) / "anomalous"
     paths = find_scenarios(anomalous_root) if anomalous_root.is_dir() else []
     paths = paths[:anomalous_limit] if anomalous_limit else paths
     sums = {"anomaly": 0.0, "road": 0.0}
-    counts = {"anomaly": 0, "road": 0}
+    pixels = {"anomaly": 0, "road": 0}
     for path in paths:
-        drive = load_drive(open_inputs_only(path, config.frame_step), config)
-        recon, _ = reconstruct_drive(model, drive)
+        drive = load_drive(label_free_scenario(path, config.frame_step), config)
+        _, recon = filter_drive(model, drive)
         error = np.abs(recon - drive.rgb.astype(np.float32) / 255.0).mean(-1)  # (T, h, w)
         scenario = AnoVoxScenario(path, every=config.frame_step)
         anomaly, road = label_masks(scenario, config.image_height, config.image_width)
         for name, mask in (("anomaly", anomaly), ("road", road)):
             sums[name] += float(error[mask].sum())
-            counts[name] += int(mask.sum())
+            pixels[name] += int(mask.sum())
     if paths:
         figures["anomalous_drives"] = len(paths)
-        figures["anomaly_pixels"] = counts["anomaly"]
-        figures["anomaly_error"] = sums["anomaly"] / max(counts["anomaly"], 1)
-        figures["road_error"] = sums["road"] / max(counts["road"], 1)
+        figures["anomaly_pixels"] = pixels["anomaly"]
+        figures["anomaly_error"] = sums["anomaly"] / max(pixels["anomaly"], 1)
+        figures["road_error"] = sums["road"] / max(pixels["road"], 1)
         figures["anomaly_road_ratio"] = figures["anomaly_error"] / max(figures["road_error"], 1e-12)
     return figures

@@ -44,28 +44,10 @@ class FeatureTrainingConfig:
     covariance_weight: float = 1.0
 
 
-def normal_root(data: Path) -> Path:
-    """DATA/normal for a generated benchmark, else DATA itself (a folder of normal scenarios)."""
-    return data / "normal" if (data / "normal").is_dir() else data
-
-
-SENSOR_MODALITIES = ("rgb", "lidar", "action", "route")  # what the world model sees; never labels
-
-
-def label_free_scenario(path: Path, every: int = 1, keep: tuple[str, ...] = SENSOR_MODALITIES):
-    """An AnoVoxScenario that cannot open label files: modalities outside `keep` (semantic,
-    instance, anomaly, depth) are hidden from the reader, which then returns None for them."""
-    from umad_common.datasets.anovox import AnoVoxScenario
-
-    scenario = AnoVoxScenario(path, every=every)
-    scenario.folders = {key: folder for key, folder in scenario.folders.items() if key in keep}
-    return scenario
-
-
 def load_normal_rgb(data: Path, cfg: FeatureTrainingConfig) -> tuple[np.ndarray, list[str]]:
     """(N, h, w, 3) uint8 camera frames of the normal training drives, resized to `cfg.size` and
     spread evenly over them, and the names of the held-out drives."""
-    from umad_common.datasets.anovox import find_scenarios
+    from umad_common.datasets.anovox import find_scenarios, label_free_scenario, normal_root
 
     root = normal_root(data)
     paths = find_scenarios(root)

@@ -120,8 +120,7 @@ def _train(
 def load_normal_frames(data: Path, cfg: MnadConfig, max_frames: int) -> np.ndarray:
     """(N, h, w, 3) uint8 camera frames of the normal drives (DATA/normal when present), resized to
     the model size and spread evenly over all drives. Label files are never opened."""
-    from umad_common.datasets.anovox import find_scenarios
-    from umad_common.training.train_features import label_free_scenario, normal_root
+    from umad_common.datasets.anovox import find_scenarios, label_free_scenario, normal_root
 
     root = normal_root(Path(data))
     scenarios = [label_free_scenario(path, keep=("rgb",)) for path in find_scenarios(root)]
