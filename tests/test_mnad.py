@@ -82,6 +82,19 @@ def test_tiny_training_is_deterministic_and_learns(tmp_path):
     torch.testing.assert_close(loaded.anomaly_map(x), model_a.anomaly_map(x))
 
 
+def test_time_budget_sets_the_epochs_and_the_record_reproduces_them():
+    budget = MnadTrainingConfig(seed=3, batch_size=3, minutes=0.02)  # 1.2 s: a few epochs of 2 tiny steps
+    model_a, record = train_mnad(tiny_frames(), budget, TINY, progress=False)
+    epochs = record["training"]["epochs"]
+    history = record["training"]["losses_per_epoch"]
+    assert epochs >= 1 and [e["epoch"] for e in history] == list(range(1, epochs + 1))
+    seconds = [e["seconds"] for e in history]  # wall time since the start, after each epoch
+    assert seconds == sorted(seconds) and record["training"]["minutes"] == 0.02
+    again, _ = train_mnad(tiny_frames(), MnadTrainingConfig(epochs=epochs, seed=3, batch_size=3), TINY, progress=False)
+    for (name, a), b in zip(model_a.state_dict().items(), again.state_dict().values(), strict=True):
+        assert torch.equal(a, b), name
+
+
 def test_load_errors_name_the_file(tmp_path):
     with pytest.raises(WeightsError, match="not found"):
         load_mnad(tmp_path / "missing.safetensors")

@@ -17,6 +17,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", type=Path, required=True, help="weights file (.safetensors); its .json config is written beside it"
     )
     parser.add_argument("--epochs", type=int, default=3, help="passes over the loaded frames (default 3)")
+    parser.add_argument(
+        "--minutes",
+        type=float,
+        default=None,
+        help="train for about this long instead (the epochs that fit, from a timed step; recorded in the JSON)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument(
         "--frames", type=int, default=1200, help="at most this many frames, spread over all scenarios (default 1200)"
@@ -33,11 +39,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.suffix != ".safetensors":
         raise SystemExit(f"--out {args.out}: expected a .safetensors file name")
-    if args.epochs < 1 or args.frames < 2 or args.batch_size < 2:
-        raise SystemExit("--epochs must be >= 1, --frames and --batch-size >= 2")
+    if args.epochs < 1 or args.frames < 2 or args.batch_size < 2 or (args.minutes is not None and args.minutes <= 0):
+        raise SystemExit("--epochs must be >= 1, --minutes > 0, --frames and --batch-size >= 2")
     torch.set_num_threads(args.threads)
     train_cfg = MnadTrainingConfig(
-        epochs=args.epochs, seed=args.seed, batch_size=args.batch_size, max_frames=args.frames
+        epochs=args.epochs, seed=args.seed, batch_size=args.batch_size, max_frames=args.frames, minutes=args.minutes
     )
     model_cfg = MnadConfig()
     frames = load_normal_frames(args.data, model_cfg, train_cfg.max_frames)

@@ -7,9 +7,9 @@ queries that chose it (`update_memory`). Two feature losses keep the memory disc
 compactness pulls each query to its nearest item, separateness (a triplet loss) pushes the second
 nearest away. The anomaly map is the per-pixel squared L2 reconstruction error.
 
-Deviations from the paper, kept small for 2 CPU cores: the encoder/decoder widths are configurable
-(default 16/32/64 instead of 64/128/256) and the step up to the 512-dim memory space is a single
-3x3 convolution; the memory is frozen at inference (no test-time update), so the predictor is
+Deviations from the paper, kept small for 2 CPU cores: the encoder/decoder widths are the paper's
+64/128/256 by default (configurable) but the step up to the 512-dim memory space is a single 3x3
+convolution; the memory is frozen at inference (no test-time update), so the predictor is
 stateless. Input: (B, 3, 128, 192) in [-1, 1]; output the same through tanh.
 """
 
@@ -32,7 +32,7 @@ from umad_common.models.weights import WeightsError, load_tensors, read_record, 
 class MnadConfig:
     height: int = 128  # model input height (frames are plainly resized, no crop)
     width: int = 192  # model input width
-    widths: tuple[int, int, int] = (16, 32, 64)  # encoder channels per scale (paper: 64, 128, 256)
+    widths: tuple[int, int, int] = (64, 128, 256)  # encoder channels per scale (the paper's)
     feature_dim: int = 512  # query / memory item dimension (paper: 512)
     memory_items: int = 10  # number of memory items M (paper: 10)
     compactness_weight: float = 0.1  # lambda_c of the paper

@@ -6,7 +6,11 @@ the batch's queries. Frames are the normal drives' camera images (DATA/normal wh
 plainly resized to the model size, as the predictor operator sees them.
 
 Deterministic: the seed fixes the initial weights, the memory and the batch order, and torch's
-deterministic algorithms are on; the same data, seed and thread count give the same file.
+deterministic algorithms are on; the same data, seed, epochs and thread count give the same file.
+A time budget (`minutes`) is turned into a number of epochs before training starts, by timing a few
+steps of a throwaway copy; the record keeps that number, so `--epochs` reproduces the run. Like the
+world model, it trains with bfloat16 autocast and channels-last convolutions where the CPU has
+bfloat16 (2-3x faster), the loss in float32.
 """
 
 from __future__ import annotations
@@ -28,11 +32,41 @@ log = logging.getLogger("umad.train.mnad")
 
 @dataclass
 class MnadTrainingConfig:
-    epochs: int = 3  # passes over the loaded frames (the shipped checkpoint: 3, ~10 min on one busy core)
+    epochs: int = 3  # passes over the loaded frames (ignored when `minutes` is set)
     seed: int = 0
     batch_size: int = 8
     lr: float = 2e-4  # the paper's Adam learning rate, cosine-annealed to 0
     max_frames: int = 1200  # frames loaded, spread evenly over the normal scenarios
+    minutes: float | None = None  # train for about this long: sets `epochs` from the measured step time
+    bf16: bool = True  # bfloat16 autocast where the CPU supports it
+
+
+def epochs_for_budget(frames: torch.Tensor, cfg: MnadTrainingConfig, model_cfg: MnadConfig, bf16: bool) -> int:
+    """How many epochs fit in `cfg.minutes`: times 4 steps (after one warm-up) of a throwaway model."""
+    model = Mnad(model_cfg).train().to(memory_format=torch.channels_last)
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    batch = frames[: cfg.batch_size]
+    times = []
+    for _ in range(5):
+        start = time.perf_counter()
+        training_step(model, optimizer, batch, bf16)
+        times.append(time.perf_counter() - start)
+    step_s = float(np.mean(times[1:]))
+    steps_per_epoch = len(frames) // cfg.batch_size
+    return max(1, int(cfg.minutes * 60 / (step_s * steps_per_epoch)))
+
+
+def training_step(model: Mnad, optimizer: torch.optim.Optimizer, batch: torch.Tensor, bf16: bool) -> dict:
+    """One step: forward (autocast), float32 loss, backward, Adam, memory update; returns the loss parts."""
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        out = model(batch)
+    out = out._replace(recon=out.recon.float(), query=out.query.float())
+    loss, parts = model.loss(batch, out)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    model.update_memory(out.query)
+    return parts
 
 
 def frames_to_tensor(frames: np.ndarray) -> torch.Tensor:
@@ -73,40 +107,45 @@ def train_mnad(
 def _train(
     frames: np.ndarray, train_cfg: MnadTrainingConfig, model_cfg: MnadConfig, progress: bool
 ) -> tuple[Mnad, dict]:
+    data = frames_to_tensor(frames).contiguous(memory_format=torch.channels_last)
+    batch_size = min(train_cfg.batch_size, len(frames))
+    bf16 = train_cfg.bf16 and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    epochs = train_cfg.epochs if train_cfg.minutes is None else epochs_for_budget(data, train_cfg, model_cfg, bf16)
     torch.manual_seed(train_cfg.seed)
     order_rng = np.random.default_rng(train_cfg.seed)
-    model = Mnad(model_cfg).train()
-    data = frames_to_tensor(frames)
-    batch_size = min(train_cfg.batch_size, len(frames))
+    model = Mnad(model_cfg).train().to(memory_format=torch.channels_last)
     steps_per_epoch = len(frames) // batch_size  # drop the ragged last batch: batch norm needs >= 2
-    total_steps = steps_per_epoch * train_cfg.epochs
+    total_steps = steps_per_epoch * epochs
     optimizer = torch.optim.Adam(model.parameters(), lr=train_cfg.lr)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(1, total_steps))
     start = time.perf_counter()
     history: list[dict[str, float]] = []
     bar = tqdm(total=total_steps, desc="train mnad", unit="step", disable=not progress)
-    for epoch in range(train_cfg.epochs):
+    for epoch in range(epochs):
         order = order_rng.permutation(len(frames))
         sums = {"reconstruction": 0.0, "compactness": 0.0, "separateness": 0.0}
         for step in range(steps_per_epoch):
             batch = data[torch.from_numpy(order[step * batch_size : (step + 1) * batch_size])]
-            out = model(batch)
-            loss, parts = model.loss(batch, out)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
+            parts = training_step(model, optimizer, batch, bf16)
             schedule.step()
-            model.update_memory(out.query)
             for key, value in parts.items():
                 sums[key] += value
             bar.update(1)
             bar.set_postfix(epoch=epoch + 1, rec=f"{parts['reconstruction']:.4f}")
-        history.append({key: value / steps_per_epoch for key, value in sums.items()})
-        log.info("epoch %d/%d: %s", epoch + 1, train_cfg.epochs, history[-1])
+        history.append(
+            {
+                "epoch": epoch + 1,
+                **{key: value / steps_per_epoch for key, value in sums.items()},
+                "seconds": round(time.perf_counter() - start, 1),
+            }
+        )
+        log.info("epoch %d/%d: %s", epoch + 1, epochs, history[-1])
     bar.close()
     record = {
         "training": {
             **asdict(train_cfg),
+            "epochs": epochs,
+            "bf16": bf16,
             "frames": int(len(frames)),
             "steps": total_steps,
             "seconds": round(time.perf_counter() - start, 1),
