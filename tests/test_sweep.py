@@ -13,7 +13,9 @@ from mcap.writer import CompressionType, Writer
 from sklearn.metrics import average_precision_score, roc_auc_score
 
 from replay.sweep import Config, MaskSet, paper_weight_rows, sweep_log, weight_rows
+from umad_common.cli import build_parser
 from umad_common.cli import main as umad_main
+from umad_common.commands.evaluate import every_and_layout
 from umad_common.messages import Message, encode
 from umad_common.metrics.components import component_metrics
 from umad_common.refine import refine
@@ -394,6 +396,21 @@ def test_cli(log_and_truth, tmp_path, capsys):
     summary = json.loads((tmp_path / "r" / "results.json").read_text())
     assert {r["frames"] for r in summary["rows"]} == {6}
     assert summary["protocol"]["sweep_every"] == 2 and summary["protocol"]["frames"] == 6
+    assert umad_main(["sweep", str(log_and_truth[0]), "--out", str(tmp_path / "p"), "--layout", "paper"]) == 0
+    assert json.loads((tmp_path / "p" / "results.json").read_text())["protocol"]["layout"] == "paper"
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        ([], (2, "long")),
+        (["--protocol", "paper"], (10, "paper")),
+        (["--protocol", "paper", "--every", "5"], (5, "paper")),
+    ],
+)
+def test_eval_protocols(argv, expected):
+    args = build_parser().parse_args(["eval", *argv])
+    assert every_and_layout(args.protocol, args.every) == expected
 
 
 def test_sparse_seqs_and_late_parts_complete_by_frame_count(tmp_path):
