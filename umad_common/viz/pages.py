@@ -74,9 +74,14 @@ def render_table_markdown(table: Table) -> str:
     return _ENVIRONMENT.get_template("table.md.j2").render(table=table)
 
 
+def render_page(page: Page, form: str) -> str:
+    """The page as `md` or `html` text."""
+    return _ENVIRONMENT.get_template(f"page.{form}.j2").render(page=page)
+
+
 def write_page(page: Page, out: Path, stem: str) -> tuple[Path, Path]:
     """Write `stem.md` and `stem.html` into `out`; returns their paths."""
     paths = out / f"{stem}.md", out / f"{stem}.html"
-    for path, template in zip(paths, ("page.md.j2", "page.html.j2"), strict=True):
-        path.write_text(_ENVIRONMENT.get_template(template).render(page=page))
+    for path, form in zip(paths, ("md", "html"), strict=True):
+        path.write_text(render_page(page, form))
     return paths
