@@ -71,7 +71,7 @@ def test_frames_difference_names_scenarios_and_every_k(runs):
     assert frames_difference(a, copy.deepcopy(a)) is None
     other = copy.deepcopy(a)
     other["protocol"]["sweep_every"] = 2
-    assert frames_difference(a, other) == "A scored every 1. frame, B every 2. frame"
+    assert frames_difference(a, other) == "A scored every frame, B one frame in every 2"
     other = copy.deepcopy(a)
     other["protocol"]["frames_evaluated"]["Scenario_c"] = other["protocol"]["frames_evaluated"].pop("Scenario_b")
     assert frames_difference(a, other) == "only A has 1 scenario(s): Scenario_b; only B has 1 scenario(s): Scenario_c"

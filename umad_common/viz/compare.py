@@ -13,7 +13,15 @@ import json
 from pathlib import Path
 from typing import Any
 
-from umad_common.viz.headline import SCORES, describe_model, percent, protocol_line, ratio_text
+from umad_common.viz.headline import (
+    SCORES,
+    describe_model,
+    percent,
+    protocol_line,
+    ratio_text,
+    sampling_text,
+    scored_every,
+)
 from umad_common.viz.pages import Cell, Page, Section, Table
 
 SHOWN_RUNS = 3  # scenario names listed in a refusal
@@ -43,10 +51,9 @@ def load_results(path: Path) -> dict[str, Any]:
 def frames_difference(a: dict[str, Any], b: dict[str, Any]) -> str | None:
     """Why runs A and B did not score the same frames, or None when they did."""
     pa, pb = a["protocol"], b["protocol"]
-    every_a = pa.get("every", 1) * pa.get("sweep_every", 1)
-    every_b = pb.get("every", 1) * pb.get("sweep_every", 1)
+    every_a, every_b = scored_every(pa), scored_every(pb)
     if every_a != every_b:
-        return f"A scored every {every_a}. frame, B every {every_b}. frame"
+        return f"A scored {sampling_text(every_a)}, B {sampling_text(every_b)}"
     frames_a, frames_b = pa.get("frames_evaluated", {}), pb.get("frames_evaluated", {})
     only_a, only_b = sorted(set(frames_a) - set(frames_b)), sorted(set(frames_b) - set(frames_a))
     if only_a or only_b:
@@ -156,7 +163,7 @@ def compare_page(a: dict[str, Any], b: dict[str, Any], name_a: str, name_b: str)
     protocol = a["protocol"]
     headline = (
         f"A = {name_a}, B = {name_b}: the same {protocol.get('frames', 0)} frames of {protocol.get('drives', 0)} drives "
-        f"(every {protocol.get('every', 1) * protocol.get('sweep_every', 1)}. frame)."
+        f"({sampling_text(scored_every(protocol))})."
     )
     sections = [
         Section("Headline", tables=[headline_table(a, b), ratio_table(a, b)]),

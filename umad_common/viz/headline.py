@@ -81,6 +81,16 @@ def headline_figures(
     return {"settings": best, "mnad": mnad, "ratios": ratios}
 
 
+def scored_every(protocol: dict[str, Any]) -> int:
+    """k of "one frame in every k" scored: the source's sampling times the sweep's."""
+    return protocol.get("every", 1) * protocol.get("sweep_every", 1)
+
+
+def sampling_text(every: int) -> str:
+    """`every frame` or `one frame in every 10`."""
+    return "every frame" if every == 1 else f"one frame in every {every}"
+
+
 def percent(value: float | None) -> str:
     return "n/a" if value is None else f"{100 * value:.2f}"
 
@@ -92,12 +102,12 @@ def ratio_text(value: float | None) -> str:
 def protocol_line(protocol: dict[str, Any]) -> str:
     """The run's protocol in one line: data, drives, frames, every-k, scoring resolution, models, PD network."""
     models = protocol.get("models", {})
-    every = protocol.get("every", 1) * protocol.get("sweep_every", 1)
+    every = scored_every(protocol)
     score = "×".join(map(str, protocol.get("score_resolution") or ["?"]))
     label = "×".join(map(str, protocol.get("label_resolution") or ["?"]))
     parts = [
         f"Data {protocol.get('data', 'unknown')}: {protocol.get('drives', 0)} drives, "
-        f"{protocol.get('frames', 0)} frames scored (every {every}. frame)",
+        f"{protocol.get('frames', 0)} frames scored ({sampling_text(every)})",
         f"pixels scored at {score} (model resolution; labels {label} resized {protocol.get('label_resize', '?')})",
     ]
     for key, name in (("world_model", "world model"), ("perceptual", "PD network"), ("mnad", "MNAD")):
