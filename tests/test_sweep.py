@@ -326,6 +326,8 @@ def test_report_files(result, log_and_truth, tmp_path):
     assert f"**{100 * best_ap:.2f}**" in table
     scenarios = (out / "per_scenario.md").read_text()
     assert "| Scenario_a | animal |" in scenarios and "| Scenario_b | home |" in scenarios
+    for name in ("table.md", "per_scenario.md", "components.md"):  # each table file names the PD network
+        assert "PD network: label-free feature net features.safetensors" in (out / name).read_text(), name
 
 
 def test_protocol_is_read_from_the_log_and_the_model_records(result, log_and_truth, tmp_path):

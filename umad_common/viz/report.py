@@ -324,8 +324,9 @@ def write_report(
     write_ablation_csv(rows, baseline, out / "table.csv")
     scenarios = scenario_table(result, out / "per_scenario.csv")
     components = component_table(result.components)
+    protocol_text = protocol_line(protocol)
     for name, written in (("table.md", table), ("per_scenario.md", scenarios), ("components.md", components)):
-        (out / name).write_text(render_table_markdown(written))
+        (out / name).write_text(f"{render_table_markdown(written)}\nProtocol: {protocol_text}\n")
 
     plot_curves(selected_curves(result), out / "pr_curves.png", out / "roc_curves.png")
     overlays = []
@@ -355,7 +356,7 @@ def write_report(
         Section("Component metrics (SegmentMeIfYouCan)", tables=[components]),
         Section("Run", _run_lines(summary)),
     ]
-    page = Page("UMAD evaluation report", protocol_line(protocol), sections)
+    page = Page("UMAD evaluation report", protocol_text, sections)
     index, _ = write_page(page, out, "index")
     return index
 
