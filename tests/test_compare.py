@@ -50,7 +50,7 @@ def test_compare_writes_every_row_with_the_difference(runs, tmp_path, capsys):
     assert cells[4].startswith("**") == (delta > 0)  # marked where B is better
     assert markdown.count("\n| ") >= len(a["rows"]) + 1
     page = (tmp_path / "compare.html").read_text()
-    assert 'class="better"' in page and "UMAD / MNAD (AP)" in page
+    assert 'class="better num"' in page and "UMAD / MNAD (AP)" in page
 
 
 def test_compare_prints_markdown_without_out(runs, capsys):

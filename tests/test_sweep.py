@@ -370,7 +370,7 @@ def test_page_opens_with_the_headline_and_every_picture_exists(result, log_and_t
     assert positions == sorted(positions)
     assert "PD network: label-free feature net features.safetensors (trained on /data/features-normal)" in page
     assert "pixels scored at 8×12 (model resolution; labels 16×24 resized nearest)" in page
-    assert f'class="best">{100 * gt:.2f}<' in page and "paper (AnoVox" in page
+    assert f'class="best num">{100 * gt:.2f}<' in page and "paper (AnoVox" in page
     pictures = re.findall(r'src="([^"]+)"', page)
     assert "pr_curves.png" in pictures and all((out / p).is_file() for p in pictures)
     assert "<script" not in page and "http" not in page.replace("http-equiv", "")

@@ -27,6 +27,15 @@ class Cell:
         if self.mark not in MARKS:
             raise ValueError(f"cell {self.text!r}: mark {self.mark!r}; expected one of {MARKS}")
 
+    @property
+    def numeric(self) -> bool:
+        """A number as shown (`12.34`, `+0.50`, `2.96×`, `n/a`): right-aligned on the page."""
+        try:
+            float(self.text.rstrip("×"))
+        except ValueError:
+            return self.text == "n/a"
+        return True
+
 
 @dataclass
 class Table:
