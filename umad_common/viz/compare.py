@@ -82,7 +82,9 @@ def _delta_cells(value_a: float | None, value_b: float | None, higher: bool, tex
 
 def _signed(delta: float, text) -> str:
     shown = text(abs(delta))
-    return f"+{shown}" if delta > 0 else f"-{shown}" if delta < 0 else shown
+    if shown == text(0.0):  # a difference that rounds away carries no sign
+        return shown
+    return f"+{shown}" if delta > 0 else f"-{shown}"
 
 
 def _score_header(first: list[str]) -> list[str]:
@@ -149,9 +151,13 @@ def model_lines(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
         )
     models_a, models_b = a["protocol"].get("models", {}), b["protocol"].get("models", {})
     for key in dict.fromkeys([*models_a, *models_b]):
-        if models_a.get(key) != models_b.get(key):
-            describe = lambda r: describe_model(r) if r else "none"  # noqa: E731
-            lines.append(f"{key}: A {describe(models_a.get(key))}; B {describe(models_b.get(key))}.")
+        record_a, record_b = models_a.get(key), models_b.get(key)
+        if record_a == record_b:
+            continue
+        text_a, text_b = (describe_model(r) if r else "none" for r in (record_a, record_b))
+        if text_a == text_b:  # same name and training record: the files differ
+            text_a, text_b = record_a.get("file"), record_b.get("file")
+        lines.append(f"{key}: A {text_a}; B {text_b}.")
     return lines or ["Same data folder and models (files and training records)."]
 
 
