@@ -85,8 +85,10 @@ def run_protocol(metadata: dict[str, str], map_notes: dict[str, dict[str, Any]])
         return Path(path) if Path(path).is_absolute() else base / path
 
     protocol: dict[str, Any] = {"version": metadata.get("version"), "models": {}, "label_resize": LABEL_RESIZE}
-    for kind, params in operator_params(graph, sets_by_op).values():
-        if kind == "replayer":
+    for op_id, (kind, params) in operator_params(graph, sets_by_op).items():
+        if kind == "segmenter":
+            protocol.setdefault("segmenters", {})[op_id] = segmenter_record(params, resolve)
+        elif kind == "replayer":
             protocol["data"] = str(resolve(params["source"]))
             protocol["every"] = params.get("every", 1)
         elif kind == "world_model":
@@ -108,3 +110,21 @@ def perceptual_network(params: dict[str, Any], resolve) -> dict[str, Any]:
     if params.get("vgg_weights"):
         return {"network": "ImageNet VGG16", "file": str(resolve(params["vgg_weights"])), "trained_on": "ImageNet"}
     return {"network": "label-free feature net", **model_record(resolve(params["features"]))}
+
+
+def segmenter_record(params: dict[str, Any], resolve) -> dict[str, Any]:
+    """A segmenter's method and, where the method loads one, its model file and training record."""
+    method = params.get("method")
+    if method == "sam":
+        return {
+            "method": method,
+            "network": f"SAM {params.get('sam_model')}",
+            "file": str(resolve(params["sam_checkpoint"])),
+        }
+    if method == "kmeans" and params.get("kmeans_features") == "feature_net":
+        return {
+            "method": method,
+            "network": "label-free feature net",
+            **model_record(resolve(params["kmeans_feature_net"])),
+        }
+    return {"method": method}

@@ -123,6 +123,11 @@ operators:
     params: {model: models/wm.safetensors}
   - {id: diff_pd, kind: difference, inputs: {frame: world_model/frame}, params: {metric: perceptual}}
   - {id: mnad, kind: mnad, inputs: {camera: replayer/camera}, params: {weights: models/mnad.safetensors}}
+  - {id: seg_gt, kind: segmenter, inputs: {frame: world_model/frame, truth: replayer/truth}, params: {method: gt}}
+  - id: seg_sam
+    kind: segmenter
+    inputs: {frame: world_model/frame, truth: replayer/truth}
+    params: {method: sam, sam_checkpoint: /weights/sam_vit_b.pth}
 """
 
 
@@ -344,6 +349,10 @@ def test_protocol_is_read_from_the_log_and_the_model_records(result, log_and_tru
     assert models["perceptual"]["trained_on"] == "/data/features-normal"
     assert models["perceptual"]["file"] == str(base / "models/features.safetensors")
     assert models["mnad"]["trained_on"] == "/data/mnad-normal"
+    assert protocol["segmenters"] == {
+        "seg_gt": {"method": "gt"},
+        "seg_sam": {"method": "sam", "network": "SAM vit_b", "file": "/weights/sam_vit_b.pth"},
+    }
 
 
 def test_page_opens_with_the_headline_and_every_picture_exists(result, log_and_truth, tmp_path):
@@ -370,6 +379,7 @@ def test_page_opens_with_the_headline_and_every_picture_exists(result, log_and_t
     assert positions == sorted(positions)
     assert "PD network: label-free feature net features.safetensors (trained on /data/features-normal)" in page
     assert "pixels scored at 8×12 (model resolution; labels 16×24 resized nearest)" in page
+    assert "masks: gt, SAM vit_b sam_vit_b.pth." in page
     assert f'class="best num">{100 * gt:.2f}<' in page and "paper (AnoVox" in page
     pictures = re.findall(r'src="([^"]+)"', page)
     assert "pr_curves.png" in pictures and all((out / p).is_file() for p in pictures)

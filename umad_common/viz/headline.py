@@ -113,16 +113,19 @@ def protocol_line(protocol: dict[str, Any]) -> str:
     for key, name in (("world_model", "world model"), ("perceptual", "PD network"), ("mnad", "MNAD")):
         if key in models:
             parts.append(f"{name}: {describe_model(models[key])}")
+    segmenters = protocol.get("segmenters", {}).values()
+    if segmenters:
+        parts.append("masks: " + ", ".join(describe_model(s) if "file" in s else s["method"] for s in segmenters))
     return "; ".join(parts) + "."
 
 
 def describe_model(record: dict[str, Any]) -> str:
     """One phrase: `label-free feature net feature_net.safetensors (trained on /data/synth, 16 epochs)`."""
-    details = [f"trained on {record.get('trained_on', 'unknown')}"]
+    details = [f"trained on {record['trained_on']}"] if "trained_on" in record else []
     details += [f"{record[k]} {k}" for k in ("drives", "epochs") if k in record]
     name = record.get("network")
     file_name = Path(record["file"]).name if "file" in record else "?"
-    return f"{name + ' ' if name else ''}{file_name} ({', '.join(details)})"
+    return f"{name + ' ' if name else ''}{file_name}" + (f" ({', '.join(details)})" if details else "")
 
 
 def headline_tables(headline: dict[str, Any]) -> list[Table]:
