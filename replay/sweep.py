@@ -6,6 +6,10 @@ and `refine`, so a sweep row equals the live pipeline's numbers) and streams its
 `PixelMetrics`: memory is one 1 MiB histogram per configuration plus a few frames in flight. With
 `components`, a second read of the log adds SegmentMeIfYouCan component metrics for the headline
 configurations at their best pixel-F1 thresholds.
+
+Rows and settings: the paper's 15 weight rows in its order, then ours (`WeightRow.extra`); per
+segmenter the refinements mean, max, single (the paper's) and single_keep_raw (ours), plus no mask.
+The log's metadata gives the protocol (`replay.protocol`): data, models, the PD network.
 """
 
 from __future__ import annotations

@@ -58,10 +58,6 @@ class Page:
     headline: str
     sections: list[Section]
 
-    def images(self) -> list[str]:
-        """Every picture file the page links to."""
-        return [name for section in self.sections for name, _ in section.images]
-
 
 def text_cells(*texts: object) -> list[Cell]:
     """Unmarked cells from plain values."""
