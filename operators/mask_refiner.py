@@ -19,14 +19,16 @@ from umad_common.refine import refine, resize_nearest
 class MaskRefinerParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    mode: Literal["mean", "max", "single", "none"] = Field(
+    mode: Literal["mean", "max", "single", "single_keep_raw", "none"] = Field(
         default="mean",
         description="mean | max: each mask's mean | max fused score written to its pixels (the highest score "
-        "wins where masks overlap); single: only the mask with the highest mean survives; none: the fused map",
+        "wins where masks overlap); single: only the mask with the highest mean keeps its score, every other "
+        "pixel gets the frame's lowest (the paper's); single_keep_raw: the same survivor, other pixels follow "
+        "`uncovered`; none: the fused map",
     )
     uncovered: Literal["keep", "zero"] = Field(
         default="keep",
-        description="pixels covered by no surviving mask: keep their fused score (an object the segmenter "
+        description="pixels covered by no surviving mask (all modes but single): keep their fused score (an object the segmenter "
         "missed still shows its raw evidence) or set them to zero",
     )
 

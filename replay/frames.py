@@ -75,6 +75,7 @@ class LogStats:
     truncated: str | None = None  # why reading stopped early, if it did
     frames: int = 0  # (run, seq) groups formed
     segmenters: dict[str, str] = field(default_factory=dict)  # segmenter op -> method
+    map_notes: dict[str, dict] = field(default_factory=dict)  # metric -> its maps' normalization, extractor
 
 
 def _to_uint8(image: np.ndarray) -> np.ndarray:
@@ -159,6 +160,8 @@ def _fill(record: FrameRecord, op: str, output: str, msg, stats: LogStats) -> No
         stats.segmenters.setdefault(op, str(meta.get("method", op)))
     elif output == "map" and "map" in arrays:
         if "metric" in meta:
-            record.diffs[canonical_metric(str(meta["metric"]))] = np.array(arrays["map"], dtype=np.float32)
+            metric = canonical_metric(str(meta["metric"]))
+            record.diffs[metric] = np.array(arrays["map"], dtype=np.float32)
+            stats.map_notes.setdefault(metric, {k: meta[k] for k in ("normalization", "extractor") if k in meta})
         elif meta.get("model") == "mnad" or op == "mnad":
             record.mnad = np.array(arrays["map"], dtype=np.float32)

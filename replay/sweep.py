@@ -6,6 +6,10 @@ and `refine`, so a sweep row equals the live pipeline's numbers) and streams its
 `PixelMetrics`: memory is one 1 MiB histogram per configuration plus a few frames in flight. With
 `components`, a second read of the log adds SegmentMeIfYouCan component metrics for the headline
 configurations at their best pixel-F1 thresholds.
+
+Rows and settings: the paper's 15 weight rows in its order, then ours (`WeightRow.extra`); per
+segmenter the refinements mean, max, single (the paper's) and single_keep_raw (ours), plus no mask.
+The log's metadata gives the protocol (`replay.protocol`): data, models, the PD network.
 """
 
 from __future__ import annotations
@@ -20,26 +24,47 @@ import numpy as np
 from tqdm import tqdm
 
 from replay.frames import FrameRecord, LogStats, frames_from_log
+from replay.log import read_metadata
+from replay.protocol import run_protocol
 from umad_common.metrics.components import ComponentMetrics
 from umad_common.metrics.pixel import PixelMetrics
-from umad_common.refine import MAX_CHUNK_ELEMENTS, fuse, paint_masks, refine, resize_nearest
+from umad_common.refine import MAX_CHUNK_ELEMENTS, fuse, only_the_best, paint_masks, refine, resize_nearest
 
 PAPER_METRICS = ("abs", "mse", "ssim", "perceptual", "temporal")
-REFINE_MODES = ("mean", "max", "single")
+REFINE_MODES = ("mean", "max", "single", "single_keep_raw")  # single_keep_raw is ours, not the paper's
+PAPER_TRIPLES = (  # the paper's 1/3 rows, none with TD, in its order
+    ("mse", "ssim", "perceptual"),
+    ("abs", "ssim", "perceptual"),
+    ("abs", "mse", "perceptual"),
+    ("abs", "mse", "ssim"),
+)
+EXTRA_GROUPS = (  # rows of ours after the paper's: TD in a triple
+    ("ssim", "perceptual", "temporal"),
+    ("abs", "ssim", "temporal"),
+)
 
 
-def paper_weight_rows() -> list[dict[str, Fraction]]:
-    """The 15 weight rows of the UMAD ablation: each metric alone, four triples at 1/3, the five
-    leave-one-out quadruples at 1/4 and all five at 1/5."""
-    triples = [
-        ("abs", "ssim", "perceptual"),
-        ("mse", "ssim", "perceptual"),
-        ("abs", "ssim", "temporal"),
-        ("ssim", "perceptual", "temporal"),
-    ]
+@dataclass(frozen=True)
+class WeightRow:
+    """One fusion weight row of the ablation table."""
+
+    weights: dict[str, Fraction]  # metric -> weight, metrics in PAPER_METRICS order
+    extra: bool = False  # True: a row of ours, not in the paper's table
+
+
+def paper_weight_rows() -> list[WeightRow]:
+    """The 15 weight rows of the UMAD ablation in the paper's order: each metric alone; the four
+    triples at 1/3 (MSE+SSIM+PD, ABS+SSIM+PD, ABS+MSE+PD, ABS+MSE+SSIM); the five quadruples at 1/4
+    leaving out ABS, MSE, SSIM, PD, TD in turn; all five at 1/5."""
     quadruples = [tuple(m for m in PAPER_METRICS if m != left_out) for left_out in PAPER_METRICS]
-    groups = [(m,) for m in PAPER_METRICS] + triples + quadruples + [PAPER_METRICS]
-    return [{m: Fraction(1, len(group)) for m in group} for group in groups]
+    groups = [(m,) for m in PAPER_METRICS] + list(PAPER_TRIPLES) + quadruples + [PAPER_METRICS]
+    return [WeightRow({m: Fraction(1, len(group)) for m in group}) for group in groups]
+
+
+def weight_rows() -> list[WeightRow]:
+    """Every row the sweep computes: the paper's 15, then ours (EXTRA_GROUPS at equal weights)."""
+    extras = [WeightRow({m: Fraction(1, len(group)) for m in group}, extra=True) for group in EXTRA_GROUPS]
+    return paper_weight_rows() + extras
 
 
 class MaskSet:
@@ -79,18 +104,19 @@ class MaskSet:
         return scores
 
     def refine_all(self, fused: np.ndarray) -> dict[str, np.ndarray]:
-        """{"mean", "max", "single"} refined maps of one fused map (uncovered pixels keep their score)."""
+        """Every REFINE_MODES map of one fused map (uncovered pixels keep their score; `single`
+        gives every pixel outside the winning mask the frame's lowest score)."""
         fused = np.asarray(fused, dtype=np.float32)
+        lowest = np.full_like(fused, fused.min())
         if self.masks.shape[0] == 0:
-            return {mode: fused.copy() for mode in REFINE_MODES}
+            return {"mean": fused.copy(), "max": fused.copy(), "single": lowest, "single_keep_raw": fused.copy()}
         mean = self.mean_scores(fused)
-        best = int(np.argmax(mean))
-        single = np.full_like(mean, -np.inf)
-        single[best] = mean[best]
+        single = only_the_best(mean)
         return {
             "mean": paint_masks(mean, self.masks, fused),
             "max": paint_masks(self.max_scores(fused), self.masks, fused),
-            "single": paint_masks(single, self.masks, fused),
+            "single": paint_masks(single, self.masks, lowest),
+            "single_keep_raw": paint_masks(single, self.masks, fused),
         }
 
 
@@ -113,9 +139,17 @@ class OverlayFrame:
     images: dict[str, np.ndarray]  # title -> (h, w, 3) uint8 image or (h, w) float map / labels
 
 
+@dataclass(frozen=True)
+class PaperSetting:
+    """One mask setting of the paper's table, as this run names it."""
+
+    label: str  # the setting's label in every table, e.g. "felzenszwalb mean"
+    column: str  # the paper's column: gt, unsupervised, sam, max, none or single
+
+
 @dataclass
 class SweepResult:
-    rows: list[dict[str, Fraction]]
+    rows: list[WeightRow]
     metrics: dict[Config, PixelMetrics]
     frames: dict[Config, int]
     baseline: PixelMetrics | None
@@ -129,15 +163,44 @@ class SweepResult:
     seconds: float = 0.0
     components: dict[str, dict] = field(default_factory=dict)  # name -> ComponentMetrics.compute()
     scenario_tags: dict[str, set[int]] = field(default_factory=dict)  # run -> anomaly tags seen
+    frames_evaluated: dict[str, list[int]] = field(default_factory=dict)  # run -> seqs scored, ascending
+    score_shapes: set[tuple[int, int]] = field(default_factory=set)  # (h, w) the pixels were scored at
+    truth_shapes: set[tuple[int, int]] = field(default_factory=set)  # (H, W) of the labels before resizing
+    protocol: dict = field(default_factory=dict)  # what the run used: data, models, PD network (replay.protocol)
+    every: int = 1  # the sweep scored frames with seq % every == 0
 
     def row_label(self, row: int) -> str:
-        return weights_label(self.rows[row])
+        return weights_label(self.rows[row].weights)
+
+    def _ops_in_order(self) -> list[str]:
+        rank = {"gt": 0, "sam": 2}
+        return sorted(self.segmenters, key=lambda op: (rank.get(self.segmenters[op], 1), op))
+
+    def paper_settings(self) -> list[PaperSetting]:
+        """The paper's mask settings in its order: each segmenter with mean refinement (GT,
+        unsupervised, SAM), then max value, no mask and single mask with the first unsupervised
+        segmenter's masks (ground truth's when the run had none)."""
+        ops = self._ops_in_order()
+        unsupervised = [op for op in ops if self.segmenters[op] not in ("gt", "sam")]
+        if not ops:
+            return [PaperSetting("no mask", "none")]
+        main = self.segmenters[(unsupervised or ops)[0]]
+        kinds = {"gt": "gt", "sam": "sam"}
+        means = [
+            PaperSetting(f"{self.segmenters[op]} mean", kinds.get(self.segmenters[op], "unsupervised")) for op in ops
+        ]
+        return [
+            *means,
+            PaperSetting(f"{main} max", "max"),
+            PaperSetting("no mask", "none"),
+            PaperSetting(f"{main} single", "single"),
+        ]
 
     def setting_labels(self) -> list[str]:
-        """Every mask setting's label in table order: no mask, gt, unsupervised, SAM (mean, max, single)."""
-        rank = {"gt": 0, "sam": 2}
-        ops = sorted(self.segmenters, key=lambda op: (rank.get(self.segmenters[op], 1), op))
-        return ["no mask", *(f"{self.segmenters[op]} {mode}" for op in ops for mode in REFINE_MODES)]
+        """Every mask setting's label in table order: the paper's, then ours (every other segmenter x mode)."""
+        paper = [setting.label for setting in self.paper_settings()]
+        every = [f"{self.segmenters[op]} {mode}" for op in self._ops_in_order() for mode in REFINE_MODES]
+        return paper + [label for label in every if label not in paper]
 
     def setting_label(self, config: Config) -> str:
         if config.segmenter is None:
@@ -148,8 +211,8 @@ class SweepResult:
 class Sweep:
     """Feed frames with `add`; every configuration's metrics stream as they come."""
 
-    def __init__(self, rows: list[dict[str, Fraction]] | None = None, overlay_frames: int = 6, every: int = 1):
-        self.rows = rows if rows is not None else paper_weight_rows()
+    def __init__(self, overlay_frames: int = 6, every: int = 1):
+        self.rows = weight_rows()
         self.every = every
         self.metrics: dict[Config, PixelMetrics] = {}
         self.frames: dict[Config, int] = {}
@@ -162,6 +225,9 @@ class Sweep:
         self._tie = 0
         self.rows_seen: set[int] = set()
         self.scenario_tags: dict[str, set[int]] = {}
+        self.frames_evaluated: dict[str, list[int]] = {}
+        self.score_shapes: set[tuple[int, int]] = set()
+        self.truth_shapes: set[tuple[int, int]] = set()
 
     def _count(self, config: Config, scores: np.ndarray, labels: np.ndarray) -> None:
         metrics = self.metrics.get(config)
@@ -171,9 +237,11 @@ class Sweep:
         self.frames[config] = self.frames.get(config, 0) + 1
 
     def add(self, frame: FrameRecord, segmenters: dict[str, str]) -> None:
-        if frame.truth is None or frame.seq % self.every:
+        if frame.truth is None or frame.seq % self.every or (frame.mnad is None and not frame.diffs):
             return
         self.scenario_tags.setdefault(frame.run, set()).update(frame.anomaly_tags)
+        self.frames_evaluated.setdefault(frame.run, []).append(frame.seq)
+        self.truth_shapes.add(tuple(frame.truth.shape))
         if frame.mnad is not None:
             self.baseline = self.baseline or PixelMetrics()
             mnad_labels = resize_nearest(frame.truth, frame.mnad.shape)
@@ -183,14 +251,15 @@ class Sweep:
         if not frame.diffs:
             return
         shape, labels, masks = model_size_inputs(frame)
+        self.score_shapes.add(shape)
         mask_sets = {op: MaskSet(op_masks) for op, op_masks in masks.items()}
-        usable = [i for i, row in enumerate(self.rows) if set(row) <= set(frame.diffs)]
+        usable = [i for i, row in enumerate(self.rows) if set(row.weights) <= set(frame.diffs)]
         if self.default_row is None and usable:
-            self.default_row = max(usable, key=lambda i: (len(self.rows[i]), i))
+            self.default_row = max(usable, key=lambda i: (len(self.rows[i].weights), not self.rows[i].extra, i))
         pictures: dict[str, np.ndarray] = {}
         for i in usable:
             self.rows_seen.add(i)
-            weights = {m: float(w) for m, w in self.rows[i].items()}
+            weights = {m: float(w) for m, w in self.rows[i].weights.items()}
             fused = fuse({m: frame.diffs[m] for m in weights}, weights, shape)
             self._count(Config(i, None, "none"), fused, labels)
             if i == self.default_row:
@@ -250,6 +319,10 @@ class Sweep:
             segmenters=dict(stats.segmenters),
             skipped_rows=[i for i in range(len(self.rows)) if i not in self.rows_seen],
             scenario_tags=self.scenario_tags,
+            frames_evaluated={run: sorted(seqs) for run, seqs in self.frames_evaluated.items()},
+            score_shapes=self.score_shapes,
+            truth_shapes=self.truth_shapes,
+            every=self.every,
         )
 
 
@@ -284,10 +357,10 @@ def component_configs(result: SweepResult) -> dict[str, Config]:
     scored = [c for c, m in result.metrics.items() if m.n_anomaly and m.n_normal]
     if scored:
         best = max(scored, key=lambda c: (result.metrics[c].compute()["AP"], -c.row))
-        chosen[f"best AP: {weights_label(result.rows[best.row])}, {result.setting_label(best)}"] = best
+        chosen[f"best AP: {result.row_label(best.row)}, {result.setting_label(best)}"] = best
     for config in sorted(result.metrics, key=lambda c: (c.segmenter or "", c.mode)):
         if config.row == result.default_row and config.mode in ("none", "mean") and config not in chosen.values():
-            chosen[f"{weights_label(result.rows[config.row])}, {result.setting_label(config)}"] = config
+            chosen[f"{result.row_label(config.row)}, {result.setting_label(config)}"] = config
     return chosen
 
 
@@ -327,7 +400,7 @@ def component_pass(
             continue
         shape, labels, masks = model_size_inputs(frame)
         for name, config in configs.items():
-            score_map = configuration_map(frame, result.rows[config.row], config, shape, masks)
+            score_map = configuration_map(frame, result.rows[config.row].weights, config, shape, masks)
             if score_map is not None:
                 metrics[name].update(score_map, labels)
     return {name: m.compute() for name, m in metrics.items()}
@@ -354,6 +427,7 @@ def sweep_log(
     for frame in tqdm(frames_from_log(path, stats, lag), desc="sweep", unit="frame", disable=not progress):
         sweep.add(frame, stats.segmenters)
     result = sweep.result(stats)
+    result.protocol = run_protocol(read_metadata(path), stats.map_notes)
     if components:
         result.components = component_pass(path, result, lag, every, progress)
     result.seconds = time.perf_counter() - start

@@ -44,10 +44,20 @@ def test_max_writes_each_masks_max_to_its_pixels():
     np.testing.assert_allclose(out, [[1.0, 1.0, 0.6, 0.6], [1.0, 1.0, 0.6, 0.6]], rtol=1e-6)
 
 
-def test_single_keeps_only_the_highest_mean_mask():
-    out = refine(FUSED, masks_of(RIGHT, LEFT, MIDDLE), mode="single", uncovered="zero")
+def test_single_gives_every_pixel_outside_the_best_mask_the_frames_lowest_score():
+    """The paper's single mask: LEFT (mean 0.5) wins; everything else, covered or not, gets min 0.0."""
+    shifted = FUSED + 0.25  # frame minimum 0.25, so "lowest score" is not confused with zero
+    for uncovered in ("keep", "zero"):
+        out = refine(shifted, masks_of(RIGHT, LEFT, MIDDLE), mode="single", uncovered=uncovered)
+        np.testing.assert_allclose(out, [[0.75, 0.75, 0.25, 0.25], [0.75, 0.75, 0.25, 0.25]], rtol=1e-6)
+    corner_wins = refine(shifted, masks_of(CORNER, RIGHT), mode="single")  # CORNER mean 0.85 beats RIGHT 0.6
+    np.testing.assert_allclose(corner_wins, [[0.25, 0.25, 0.25, 0.85], [0.25, 0.25, 0.25, 0.25]], rtol=1e-6)
+
+
+def test_single_keep_raw_keeps_the_best_mask_and_the_uncovered_rule_elsewhere():
+    out = refine(FUSED, masks_of(RIGHT, LEFT, MIDDLE), mode="single_keep_raw", uncovered="zero")
     np.testing.assert_allclose(out, [[0.5, 0.5, 0.0, 0.0], [0.5, 0.5, 0.0, 0.0]], rtol=1e-6)
-    kept = refine(FUSED, masks_of(RIGHT, LEFT), mode="single", uncovered="keep")
+    kept = refine(FUSED, masks_of(RIGHT, LEFT), mode="single_keep_raw", uncovered="keep")
     np.testing.assert_allclose(kept, [[0.5, 0.5, 0.4, 0.6], [0.5, 0.5, 0.1, 0.3]], rtol=1e-6)
 
 
@@ -76,10 +86,14 @@ def test_uncovered_pixels_keep_or_zero():
 def test_no_masks_and_empty_masks_leave_every_pixel_uncovered():
     no_masks = np.zeros((0, 2, 4), dtype=bool)
     np.testing.assert_array_equal(refine(FUSED, no_masks, uncovered="keep"), FUSED)
-    np.testing.assert_array_equal(refine(FUSED, no_masks, mode="single", uncovered="zero"), np.zeros_like(FUSED))
+    np.testing.assert_array_equal(
+        refine(FUSED, no_masks, mode="single_keep_raw", uncovered="zero"), np.zeros_like(FUSED)
+    )
     empty = np.zeros((1, 2, 4), dtype=bool)
-    for mode in ("mean", "max", "single"):
+    for mode in ("mean", "max", "single_keep_raw"):
         np.testing.assert_array_equal(refine(FUSED, empty, mode=mode, uncovered="keep"), FUSED)
+    for masks in (no_masks, empty):  # no mask survives: every pixel gets the frame's lowest score
+        np.testing.assert_array_equal(refine(FUSED + 0.25, masks, mode="single"), np.full_like(FUSED, 0.25))
 
 
 def test_mask_scores_match_a_per_mask_loop_on_random_overlapping_masks():

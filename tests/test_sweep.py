@@ -4,14 +4,18 @@ direct computation with numpy + scikit-learn; a truncated log; the report files.
 from __future__ import annotations
 
 import json
+import re
+from fractions import Fraction
 
 import numpy as np
 import pytest
 from mcap.writer import CompressionType, Writer
 from sklearn.metrics import average_precision_score, roc_auc_score
 
-from replay.sweep import Config, MaskSet, paper_weight_rows, sweep_log
+from replay.sweep import Config, MaskSet, paper_weight_rows, sweep_log, weight_rows
+from umad_common.cli import build_parser
 from umad_common.cli import main as umad_main
+from umad_common.commands.evaluate import every_and_layout
 from umad_common.messages import Message, encode
 from umad_common.metrics.components import component_metrics
 from umad_common.refine import refine
@@ -78,11 +82,13 @@ def synthetic_frames(runs=("Scenario_a", "Scenario_b"), n=6, seed=0):
             )
 
 
-def write_log(path, frames):
+def write_log(path, frames, metadata=None):
     truths = []
     with open(path, "wb") as f:
         writer = Writer(f, compression=CompressionType.NONE, chunk_size=4096)
         writer.start(profile="umad", library="test")
+        if metadata is not None:
+            writer.add_metadata("umad", metadata)
         channels = {}
         viz = writer.register_channel("viz/camera", "json", 0)
         pending = []
@@ -107,10 +113,46 @@ def write_log(path, frames):
     return truths
 
 
+GRAPH = """
+name: test
+operators:
+  - {id: replayer, kind: replayer, params: {source: data/anomalous, every: 5}}
+  - id: world_model
+    kind: world_model
+    inputs: {camera: replayer/camera, lidar: replayer/lidar, ego: replayer/ego, route: replayer/route}
+    params: {model: models/wm.safetensors}
+  - {id: diff_pd, kind: difference, inputs: {frame: world_model/frame}, params: {metric: perceptual}}
+  - {id: mnad, kind: mnad, inputs: {camera: replayer/camera}, params: {weights: models/mnad.safetensors}}
+  - {id: seg_gt, kind: segmenter, inputs: {frame: world_model/frame, truth: replayer/truth}, params: {method: gt}}
+  - id: seg_sam
+    kind: segmenter
+    inputs: {frame: world_model/frame, truth: replayer/truth}
+    params: {method: sam, sam_checkpoint: /weights/sam_vit_b.pth}
+"""
+
+
+def write_model_records(base):
+    """JSON records beside the model files GRAPH names (the weights themselves are never opened)."""
+    (base / "models").mkdir(parents=True)
+    (base / "models" / "wm.json").write_text(
+        json.dumps({"data": "/data/normal", "training_drives": ["a", "b", "c"], "epochs": 16})
+    )
+    (base / "models" / "mnad.json").write_text(json.dumps({"training": {"data": "/data/mnad-normal", "epochs": 3}}))
+    (base / "models" / "features.json").write_text(json.dumps({"training": {"data": "/data/features-normal"}}))
+
+
 @pytest.fixture(scope="module")
 def log_and_truth(tmp_path_factory):
-    path = tmp_path_factory.mktemp("log") / "run.mcap"
-    truths = write_log(path, synthetic_frames())
+    base = tmp_path_factory.mktemp("log")
+    write_model_records(base)
+    metadata = {
+        "graph": GRAPH,
+        "base_dir": str(base),
+        "sets": json.dumps(["diff_pd.features=models/features.safetensors"]),
+        "version": "test",
+    }
+    path = base / "run.mcap"
+    truths = write_log(path, synthetic_frames(), metadata)
     return path, truths
 
 
@@ -146,11 +188,54 @@ def refined_mean(fused, masks):
     return out
 
 
+def test_weight_rows_are_the_papers_in_its_order_then_ours():
+    third, quarter, fifth = Fraction(1, 3), Fraction(1, 4), Fraction(1, 5)
+    table = [  # (ABS, MSE, SSIM, PD, TD) as printed in the paper
+        (1, 0, 0, 0, 0),
+        (0, 1, 0, 0, 0),
+        (0, 0, 1, 0, 0),
+        (0, 0, 0, 1, 0),
+        (0, 0, 0, 0, 1),
+        (0, third, third, third, 0),
+        (third, 0, third, third, 0),
+        (third, third, 0, third, 0),
+        (third, third, third, 0, 0),
+        (0, quarter, quarter, quarter, quarter),
+        (quarter, 0, quarter, quarter, quarter),
+        (quarter, quarter, 0, quarter, quarter),
+        (quarter, quarter, quarter, 0, quarter),
+        (quarter, quarter, quarter, quarter, 0),
+        (fifth,) * 5,
+    ]
+    metrics = ("abs", "mse", "ssim", "perceptual", "temporal")
+    as_tuples = [tuple(row.weights.get(m, 0) for m in metrics) for row in paper_weight_rows()]
+    assert as_tuples == table
+    assert not any(row.extra for row in paper_weight_rows())
+    rows = weight_rows()
+    assert rows[:15] == paper_weight_rows() and all(row.extra for row in rows[15:])
+    assert {tuple(row.weights) for row in rows[15:]} == {
+        ("ssim", "perceptual", "temporal"),
+        ("abs", "ssim", "temporal"),
+    }
+
+
+def single_mask(fused, mask):
+    """The paper's single mask by hand: the winning mask's mean, the frame's lowest score elsewhere."""
+    out = np.full_like(fused, fused.min())
+    out[mask] = fused[mask].mean()
+    return out
+
+
 def test_rows_and_settings(result):
-    rows = paper_weight_rows()
-    assert len(rows) == 15 and len({tuple(sorted(r)) for r in rows}) == 15
     assert result.stats.segmenters == {"seg_gt": "gt", "seg_felz": "felzenszwalb"}
-    assert len(result.metrics) == 15 * 7 and not result.skipped_rows
+    assert [s.label for s in result.paper_settings()] == [
+        "gt mean",
+        "felzenszwalb mean",
+        "felzenszwalb max",
+        "no mask",
+        "felzenszwalb single",
+    ]
+    assert len(result.metrics) == 17 * 9 and not result.skipped_rows
     assert result.stats.frames == 12 and result.stats.duplicates == 2 and result.stats.bad == 6
     assert result.stats.truncated is None
     assert set(result.frames.values()) == {12}
@@ -159,15 +244,18 @@ def test_rows_and_settings(result):
 @pytest.mark.parametrize("row", [0, 4, 5, 14])
 def test_numbers_equal_direct_computation(result, log_and_truth, row):
     truths = log_and_truth[1]
-    weights = paper_weight_rows()[row]
+    weights = paper_weight_rows()[row].weights
     got = result.metrics[Config(row, None, "none")].compute()
     ap, auroc = direct(truths, lambda t: weighted(t, weights))
     assert got["AP"] == pytest.approx(ap, abs=1e-12) and got["AUROC"] == pytest.approx(auroc, abs=1e-12)
     got = result.metrics[Config(row, "seg_felz", "mean")].compute()
     ap, auroc = direct(truths, lambda t: refined_mean(weighted(t, weights), t["tiles"]))
     assert got["AP"] == pytest.approx(ap, abs=1e-12) and got["AUROC"] == pytest.approx(auroc, abs=1e-12)
-    got = result.metrics[Config(row, "seg_gt", "single")].compute()
+    got = result.metrics[Config(row, "seg_gt", "single_keep_raw")].compute()
     ap, _ = direct(truths, lambda t: refined_mean(weighted(t, weights), t["gt"][[0]]))  # the anomaly mask wins
+    assert got["AP"] == pytest.approx(ap, abs=1e-12)
+    got = result.metrics[Config(row, "seg_gt", "single")].compute()
+    ap, _ = direct(truths, lambda t: single_mask(weighted(t, weights), t["gt"][0]))
     assert got["AP"] == pytest.approx(ap, abs=1e-12)
 
 
@@ -185,9 +273,11 @@ def test_baseline_and_per_scenario(result, log_and_truth):
         "gt mean",
         "gt max",
         "gt single",
+        "gt single_keep_raw",
         "felzenszwalb mean",
         "felzenszwalb max",
         "felzenszwalb single",
+        "felzenszwalb single_keep_raw",
         "MNAD",
     }
     pooled = result.per_scenario["Scenario_a"]["no mask"]
@@ -229,18 +319,85 @@ def test_report_files(result, log_and_truth, tmp_path):
     ):
         assert (out / name).is_file(), name
     summary = json.loads((out / "results.json").read_text())
-    assert len(summary["rows"]) == 105 and summary["baseline"]["name"] == "MNAD"
+    assert len(summary["rows"]) == 17 * 9 and summary["baseline"]["name"] == "MNAD"
     assert "MNAD" in summary["components"] and (out / "components.md").is_file()
-    assert {"weights", "masks", "AP", "FPR95", "AUROC"} <= set(summary["rows"][0])
+    assert {"weights", "masks", "AP", "FPR95", "AUROC", "extra"} <= set(summary["rows"][0])
+    extra = {(r["weights_label"], r["masks"]) for r in summary["rows"] if r["extra"]}
+    assert ("ssim+perceptual+temporal (1/3)", "gt mean") in extra and ("abs", "gt single_keep_raw") in extra
+    assert ("abs", "gt max") in extra and ("abs", "felzenszwalb max") not in extra
     table = (out / "table.md").read_text()
-    assert table.count("\n| ") == 106 and "**" in table
+    assert table.count("\n| ") == 17 * 9 + 1 and "**" in table
     best_ap = max(r["AP"] for r in summary["rows"] + [summary["baseline"]])
     assert f"**{100 * best_ap:.2f}**" in table
-    page = (out / "index.html").read_text()  # the page shows the table files' values and marks
-    assert f"<b>{100 * best_ap:.2f}</b>" in page and "<i>" in page and "_mark" not in page
-    assert page.count("<table>") == 3  # ablation, components, per scenario
     scenarios = (out / "per_scenario.md").read_text()
     assert "| Scenario_a | animal |" in scenarios and "| Scenario_b | home |" in scenarios
+    for name in ("table.md", "per_scenario.md", "components.md"):  # each table file names the PD network
+        assert "PD network: label-free feature net features.safetensors" in (out / name).read_text(), name
+
+
+def test_protocol_is_read_from_the_log_and_the_model_records(result, log_and_truth, tmp_path):
+    out = write_report(result, tmp_path / "report", log_and_truth[0]).parent
+    protocol = json.loads((out / "results.json").read_text())["protocol"]
+    base = log_and_truth[0].parent
+    assert protocol["data"] == str(base / "data/anomalous") and protocol["every"] == 5
+    assert protocol["drives"] == 2 and protocol["frames"] == 12
+    assert protocol["frames_evaluated"] == {"Scenario_a": list(range(6)), "Scenario_b": list(range(6))}
+    assert protocol["score_resolution"] == [h, w] and protocol["label_resolution"] == [H, W]
+    models = protocol["models"]
+    assert models["world_model"]["trained_on"] == "/data/normal" and models["world_model"]["drives"] == 3
+    assert models["perceptual"]["network"] == "label-free feature net"  # the --set in the metadata applies
+    assert models["perceptual"]["trained_on"] == "/data/features-normal"
+    assert models["perceptual"]["file"] == str(base / "models/features.safetensors")
+    assert models["mnad"]["trained_on"] == "/data/mnad-normal"
+    assert protocol["segmenters"] == {
+        "seg_gt": {"method": "gt"},
+        "seg_sam": {"method": "sam", "network": "SAM vit_b", "file": "/weights/sam_vit_b.pth"},
+    }
+
+
+def test_page_opens_with_the_headline_and_every_picture_exists(result, log_and_truth, tmp_path):
+    out = write_report(result, tmp_path / "report", log_and_truth[0]).parent
+    summary = json.loads((out / "results.json").read_text())
+    headline = summary["headline"]
+    assert [s["column"] for s in headline["settings"]] == ["gt", "unsupervised", "max", "none", "single"]
+    gt = max(r["AP"] for r in summary["rows"] if r["masks"] == "gt mean")
+    unsupervised = max(r["AP"] for r in summary["rows"] if r["masks"] == "felzenszwalb mean")
+    assert headline["settings"][0]["AP"] == gt
+    assert headline["ratios"]["unsupervised / GT masks (AP)"] == pytest.approx(unsupervised / gt)
+    assert headline["ratios"]["UMAD / MNAD (AP)"] == pytest.approx(unsupervised / summary["baseline"]["AP"])
+    page = (out / "index.html").read_text()
+    order = [
+        'class="headline">Data ' + str(log_and_truth[0].parent / "data/anomalous"),
+        "UMAD / MNAD (AP)",
+        "AP by weights and mask settings",
+        "<img",
+        "Ablation table",
+        "Per scenario",
+        "Component metrics",
+    ]
+    positions = [page.index(text) for text in order]
+    assert positions == sorted(positions)
+    assert "PD network: label-free feature net features.safetensors (trained on /data/features-normal)" in page
+    assert "pixels scored at 8×12 (model resolution; labels 16×24 resized nearest)" in page
+    assert "masks: gt, SAM vit_b sam_vit_b.pth." in page
+    assert f'class="best num">{100 * gt:.2f}<' in page and "paper (AnoVox" in page
+    pictures = re.findall(r'src="([^"]+)"', page)
+    assert "pr_curves.png" in pictures and all((out / p).is_file() for p in pictures)
+    assert "<script" not in page and "http" not in page.replace("http-equiv", "")
+    markdown = (out / "index.md").read_text()
+    assert markdown.index("UMAD / MNAD (AP)") < markdown.index("## AP by weights") < markdown.index("## Ablation")
+    assert all((out / p).is_file() for p in re.findall(r"\]\(([^)]+)\)", markdown))
+
+
+def test_paper_layout_table(result, tmp_path):
+    out = write_report(result, tmp_path / "report", layout="paper").parent
+    lines = (out / "table.md").read_text().splitlines()
+    header = lines[0]
+    assert header.index("gt mean AP") < header.index("felzenszwalb mean AP") < header.index("felzenszwalb max AP")
+    assert header.index("felzenszwalb max AP") < header.index("no mask AP") < header.index("felzenszwalb single AP")
+    rows = [line for line in lines[2:] if line.startswith("| ")]
+    assert len(rows) == 17 and rows[0].startswith("| 1 |  |  |  |  | paper |")
+    assert all("| extra |" in row for row in rows[15:])
 
 
 def test_cli(log_and_truth, tmp_path, capsys):
@@ -250,6 +407,22 @@ def test_cli(log_and_truth, tmp_path, capsys):
     )
     summary = json.loads((tmp_path / "r" / "results.json").read_text())
     assert {r["frames"] for r in summary["rows"]} == {6}
+    assert summary["protocol"]["sweep_every"] == 2 and summary["protocol"]["frames"] == 6
+    assert umad_main(["sweep", str(log_and_truth[0]), "--out", str(tmp_path / "p"), "--layout", "paper"]) == 0
+    assert json.loads((tmp_path / "p" / "results.json").read_text())["protocol"]["layout"] == "paper"
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        ([], (2, "long")),
+        (["--protocol", "paper"], (10, "paper")),
+        (["--protocol", "paper", "--every", "5"], (5, "paper")),
+    ],
+)
+def test_eval_protocols(argv, expected):
+    args = build_parser().parse_args(["eval", *argv])
+    assert every_and_layout(args.protocol, args.every) == expected
 
 
 def test_sparse_seqs_and_late_parts_complete_by_frame_count(tmp_path):
@@ -295,6 +468,6 @@ def test_mask_set_is_bit_identical_to_refine(seed):
     tiling = np.stack([(np.arange(36)[None, :] // 6 == k).repeat(24, axis=0) for k in range(6)])
     for masks in (overlapping, tiling, np.zeros((0, 24, 36), bool)):
         refined = MaskSet(masks).refine_all(fused)
-        for mode in ("mean", "max", "single"):
+        for mode in ("mean", "max", "single", "single_keep_raw"):
             expected = refine(fused, masks, mode=mode, uncovered="keep")
             assert refined[mode].dtype == expected.dtype and np.array_equal(refined[mode], expected), mode

@@ -27,6 +27,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("calibrate",): ("umad_common.commands.calibrate", "fit per-metric normalisation on normal frames"),
     ("eval",): ("umad_common.commands.evaluate", "run the full UMAD evaluation and write the report"),
     ("sweep",): ("umad_common.commands.sweep", "compute the ablation table from a recorded log"),
+    ("compare",): ("umad_common.commands.compare", "two evaluation runs side by side, B's changes marked"),
     ("bench",): ("umad_common.commands.bench", "side-by-side performance ratios"),
 }
 

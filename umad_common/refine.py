@@ -14,7 +14,9 @@ Rules (ARCHITECTURE.md, "fuse" and "refine"):
   not contribute. If no present metric has a positive weight the fused map is all zeros.
 - `refine` scores each mask by the `mean` (paper default) or `max` of the fused map over its pixels
   and writes that score to every pixel of the mask. Where masks overlap, the highest score wins.
-  `single` keeps only the mask with the highest mean score. `none` returns the fused map unchanged.
+  `single` (the paper's single mask) keeps only the mask with the highest mean score and gives
+  every other pixel the frame's lowest fused score; `single_keep_raw` keeps that mask too but
+  leaves the other pixels to the uncovered rule. `none` returns the fused map unchanged.
   Pixels no (surviving) mask covers are `keep` (their fused score) or `zero`.
 """
 
@@ -26,9 +28,9 @@ from typing import Literal
 import cv2
 import numpy as np
 
-RefineMode = Literal["mean", "max", "single", "none"]
+RefineMode = Literal["mean", "max", "single", "single_keep_raw", "none"]
 UncoveredRule = Literal["keep", "zero"]
-REFINE_MODES: tuple[str, ...] = ("mean", "max", "single", "none")
+REFINE_MODES: tuple[str, ...] = ("mean", "max", "single", "single_keep_raw", "none")
 UNCOVERED_RULES: tuple[str, ...] = ("keep", "zero")
 MAX_CHUNK_ELEMENTS = 1 << 22  # bounds the (masks x pixels) float temporaries of the `max` mode
 
@@ -146,10 +148,12 @@ def refine(
         fused: (h, w) fused score map.
         masks: (K, h, w) bool segment masks; K may be 0; masks may overlap.
         mode: `mean` | `max`: each mask's mean | max fused score written to its pixels, the highest
-            score winning on overlaps; `single`: only the mask with the highest mean survives (ties:
-            the lowest index); `none`: the fused map unchanged.
+            score winning on overlaps; `single`: only the mask with the highest mean keeps its score
+            (ties: the lowest index), every other pixel gets the frame's lowest fused score (the
+            paper's single mask); `single_keep_raw`: the same survivor, the other pixels follow
+            `uncovered`; `none`: the fused map unchanged.
         uncovered: pixels no surviving mask covers: `keep` their fused score (a missed object still
-            shows its raw evidence) or `zero`.
+            shows its raw evidence) or `zero`. Not used by `single`.
 
     Returns:
         (h, w) float32 refined map.
@@ -169,13 +173,21 @@ def refine(
         raise ValueError(f"refine: masks have shape {masks.shape}; expected (K, {fused.shape[0]}, {fused.shape[1]})")
     if mode == "none":
         return fused.copy()
-    background = fused if uncovered == "keep" else np.zeros_like(fused)
+    if mode == "single":
+        background = np.full_like(fused, fused.min() if fused.size else 0.0)
+    else:
+        background = fused if uncovered == "keep" else np.zeros_like(fused)
     if masks.shape[0] == 0:
         return np.array(background, dtype=np.float32, copy=True)
     scores = mask_scores(fused, masks, "max" if mode == "max" else "mean")
-    if mode == "single":
-        best = int(np.argmax(scores))
-        keep_only_best = np.full_like(scores, -np.inf)
-        keep_only_best[best] = scores[best]
-        scores = keep_only_best
+    if mode in ("single", "single_keep_raw"):
+        scores = only_the_best(scores)
     return paint_masks(scores, masks, background)
+
+
+def only_the_best(scores: np.ndarray) -> np.ndarray:
+    """Mask scores with every mask but the highest-scoring one (ties: the lowest index) set to -inf."""
+    best = int(np.argmax(scores))
+    kept = np.full_like(scores, -np.inf)
+    kept[best] = scores[best]
+    return kept

@@ -27,6 +27,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="skip the second read of the log (SegmentMeIfYouCan component metrics)",
     )
     parser.add_argument(
+        "--layout",
+        choices=["long", "paper"],
+        default="long",
+        help="table.md: one line per configuration (long) or the paper's layout (a line per weight row)",
+    )
+    parser.add_argument(
         "--overlays",
         type=int,
         default=6,
@@ -50,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
             f"{args.log}: no frame with ground truth and score maps found in {result.stats.messages} messages; "
             "expected channels umad/<graph>/<op>/{truth,frame,map,masks}"
         )
-    index = write_report(result, args.out, args.log)
+    index = write_report(result, args.out, args.log, layout=args.layout)
     log.info(
         "%d configurations over %d frames in %.1f s; report: %s",
         len(result.metrics),

@@ -1,5 +1,11 @@
 """The evaluation report of a sweep: results.json, the ablation table (Markdown, CSV), curves,
-overlay grids, the per-scenario breakdown and an index (Markdown and HTML) tying them together.
+overlay grids, the per-scenario and component tables, and the page tying them together
+(index.md and index.html, rendered from the same rows by the templates in `templates/`).
+
+The page opens with the headline (`headline.py`): the run's protocol in one line, the best row
+per mask setting next to MNAD and the ratios that decide the method; then the AP pivot (weights x
+mask settings), the pictures, and the full tables. Rows and mask settings that are not in the
+paper's table are marked `extra`.
 
 Table values are percentages; in each metric column the best value is **bold** and the second best
 _italic_ (AP and AUROC: higher is better; FPR95: lower is better), the MNAD baseline included.
@@ -8,16 +14,16 @@ _italic_ (AP and AUROC: higher is better; FPR95: lower is better), the MNAD base
 from __future__ import annotations
 
 import csv
-import html
 import json
 import math
-import re
 from fractions import Fraction
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from umad_common.datasets.anovox import ANOMALY_CATEGORIES
 from umad_common.metrics.pixel import PixelMetrics
+from umad_common.viz.headline import SCORES, headline_figures, headline_tables, percent, protocol_line
+from umad_common.viz.pages import Cell, Page, Section, Table, render_table_markdown, text_cells, write_page
 from umad_common.viz.plots import plot_curves, plot_overlay_grid
 
 if TYPE_CHECKING:
@@ -25,43 +31,32 @@ if TYPE_CHECKING:
 
 METRIC_COLUMNS = {"abs": "ABS", "mse": "MSE", "ssim": "SSIM", "perceptual": "PD", "temporal": "TD"}
 PAPER_METRICS = tuple(METRIC_COLUMNS)
-SCORES = (("AP", True), ("FPR95", False), ("AUROC", True))  # (key, higher is better)
+Layout = Literal["long", "paper"]
+LAYOUTS = ("long", "paper")
 
 
-def _number(value: float) -> float | None:
+def _number(value: float | None) -> float | None:
     return None if value is None or math.isnan(value) else float(value)
 
 
-def component_table(components: dict[str, dict]) -> str:
-    """SegmentMeIfYouCan component metrics per configuration (Markdown)."""
-    if not components:
-        return "(not computed)\n"
-    lines = [
-        "| configuration | threshold | sIoU | PPV | mean F1 | GT components | predicted components |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for name, c in components.items():
-        cells = [f"{c['threshold']:.4g}", *(_percent(_number(c[k])) for k in ("sIoU", "PPV", "mean_F1"))]
-        lines.append(
-            f"| {name} | " + " | ".join([*cells, str(c["n_truth_components"]), str(c["n_predicted_components"])]) + " |"
-        )
-    return (
-        "\n".join(lines) + "\n\nScore maps thresholded at each configuration's best pixel-F1 threshold; values in %.\n"
-    )
-
-
 def table_rows(result: SweepResult) -> list[dict[str, Any]]:
-    """One dict per configuration, in table order: weight row, then mask setting; MNAD excluded."""
+    """One dict per configuration, in table order: weight row, then mask setting; MNAD excluded.
+    `extra` is True where the weight row or the mask setting is not in the paper's table,
+    `extra_weights` where the weight row is not."""
     order = {label: i for i, label in enumerate(result.setting_labels())}
+    paper = {setting.label for setting in result.paper_settings()}
     configs = sorted(result.metrics, key=lambda c: (c.row, order.get(result.setting_label(c), 99)))
     rows = []
     for config in configs:
         scores = result.metrics[config].compute()
+        label = result.setting_label(config)
         rows.append(
             {
-                "weights": {m: float(w) for m, w in result.rows[config.row].items()},
+                "weights": {m: float(w) for m, w in result.rows[config.row].weights.items()},
                 "weights_label": result.row_label(config.row),
-                "masks": result.setting_label(config),
+                "masks": label,
+                "extra": result.rows[config.row].extra or label not in paper,
+                "extra_weights": result.rows[config.row].extra,
                 "segmenter": config.segmenter,
                 "mode": config.mode,
                 "AP": _number(scores["AP"]),
@@ -91,11 +86,11 @@ def baseline_row(result: SweepResult) -> dict[str, Any] | None:
     }
 
 
-def rank_marks(rows: list[dict[str, Any]]) -> list[dict[str, str]]:
+def rank_marks(rows: list[dict[str, Any]], keys: tuple[tuple[str, bool], ...] = SCORES) -> list[dict[str, str]]:
     """Per row and score column: "best", "second" or "" (values equal as shown, in % to 2 decimals, share a mark)."""
-    marks = [{key: "" for key, _ in SCORES} for _ in rows]
-    for key, higher in SCORES:
-        shown = [None if r[key] is None else round(100 * r[key], 2) for r in rows]
+    marks = [{key: "" for key, _ in keys} for _ in rows]
+    for key, higher in keys:
+        shown = [None if r.get(key) is None else round(100 * r[key], 2) for r in rows]
         values = sorted({v for v in shown if v is not None}, reverse=higher)
         for mark, value in zip(("best", "second"), values, strict=False):
             for i, v in enumerate(shown):
@@ -104,96 +99,146 @@ def rank_marks(rows: list[dict[str, Any]]) -> list[dict[str, str]]:
     return marks
 
 
-def _percent(value: float | None, mark: str = "") -> str:
-    if value is None:
-        return "n/a"
-    text = f"{100 * value:.2f}"
-    return f"**{text}**" if mark == "best" else f"_{text}_" if mark == "second" else text
+def _fractions(weights: dict[str, float]) -> list[str]:
+    return [str(Fraction(weights[m]).limit_denominator(10)) if m in weights else "" for m in PAPER_METRICS]
 
 
-def write_table(rows: list[dict[str, Any]], baseline: dict[str, Any] | None, md_path: Path, csv_path: Path) -> str:
-    """The ablation table as Markdown (returned too) and CSV, baseline last."""
+def _row_name(row: dict[str, Any]) -> str:
+    return row["weights_label"] + (" (extra)" if row["extra_weights"] else "")
+
+
+def ablation_table(rows: list[dict[str, Any]], baseline: dict[str, Any] | None) -> Table:
+    """Every configuration, one line each (weights, masks, AP, FPR95, AUROC, frames), MNAD last."""
     everything = rows + ([baseline] if baseline else [])
     marks = rank_marks(everything)
-    header = [METRIC_COLUMNS[m] for m in PAPER_METRICS] + ["Masks", "AP ↑", "FPR95 ↓", "AUROC ↑", "frames"]
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    with open(csv_path, "w", newline="") as f:
+    header = [*METRIC_COLUMNS.values(), "Masks", "AP ↑", "FPR95 ↓", "AUROC ↑", "frames", "in paper"]
+    lines = []
+    for row, mark in zip(everything, marks, strict=True):
+        weights = _fractions(row["weights"]) if "weights" in row else ["MNAD baseline", "", "", "", ""]
+        in_paper = "extra" if row.get("extra") else "yes"
+        lines.append(
+            [
+                *text_cells(*weights, row["masks"]),
+                *(Cell(percent(row[k]), mark[k]) for k, _ in SCORES),
+                *text_cells(row["frames"], in_paper),
+            ]
+        )
+    return Table(header, lines, "**bold** = best, _italic_ = second best per column (MNAD included). Values in %.")
+
+
+def paper_layout_table(rows: list[dict[str, Any]], baseline: dict[str, Any] | None, settings: list[str]) -> Table:
+    """The paper's layout: one line per weight row, AP and FPR95 under each of its mask settings in
+    its order (GT / unsupervised / SAM with mean refinement, max value, no mask, single mask)."""
+    cell = {(r["weights_label"], r["masks"]): r for r in rows}
+    weight_rows = {r["weights_label"]: r for r in rows}  # label -> a row with its weights and extra flag
+    keys = tuple((f"{s} {k}", k == "AP") for s in settings for k in ("AP", "FPR95"))
+    grid = [
+        {f"{s} {k}": (cell.get((label, s)) or {}).get(k) for s in settings for k in ("AP", "FPR95")}
+        for label in weight_rows
+    ]
+    marks = rank_marks(grid, keys)
+    header = [*METRIC_COLUMNS.values(), "row", *(f"{name} {'↑' if higher else '↓'}" for name, higher in keys)]
+    lines = [
+        [
+            *text_cells(*_fractions(row["weights"]), "extra" if row["extra_weights"] else "paper"),
+            *(Cell(percent(values[k]), mark[k]) for k, _ in keys),
+        ]
+        for row, values, mark in zip(weight_rows.values(), grid, marks, strict=True)
+    ]
+    note = "Bold / italic: best / second best per column. Values in %."
+    if baseline is not None:
+        note += f" MNAD baseline: AP {percent(baseline['AP'])}, FPR95 {percent(baseline['FPR95'])}."
+    return Table(header, lines, note)
+
+
+def pivot_table(rows: list[dict[str, Any]], baseline: dict[str, Any] | None, paper_settings: list[str]) -> Table:
+    """AP as a weight-row x mask-setting grid, the compact view of the ablation; best and second
+    best weight row marked per mask setting (column)."""
+    settings = list(dict.fromkeys(r["masks"] for r in rows))
+    names = list(dict.fromkeys(_row_name(r) for r in rows))
+    cell = {(_row_name(r), r["masks"]): r["AP"] for r in rows}
+    grid = [{s: cell.get((name, s)) for s in settings} for name in names]
+    marks = rank_marks(grid, tuple((s, True) for s in settings))
+    header = ["AP (%)", *(s if s in paper_settings else f"{s} (extra)" for s in settings)]
+    lines = [
+        [Cell(name), *(Cell(percent(values[s]), mark[s]) for s in settings)]
+        for name, values, mark in zip(names, grid, marks, strict=True)
+    ]
+    if baseline is not None:  # MNAD scores pixels without masks: its AP stands under "no mask"
+        lines.append(
+            [Cell("MNAD baseline"), *(Cell(percent(baseline["AP"]) if s == "no mask" else "") for s in settings)]
+        )
+    return Table(header, lines, "Bold / italic: best / second best weight row under each mask setting.")
+
+
+def write_ablation_csv(rows: list[dict[str, Any]], baseline: dict[str, Any] | None, path: Path) -> None:
+    """The long table as CSV (fractions, masks, scores as fractions of 1, marks), MNAD last."""
+    everything = rows + ([baseline] if baseline else [])
+    marks = rank_marks(everything)
+    with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(
-            ["method", *PAPER_METRICS, "masks", "AP", "FPR95", "AUROC", "AP_mark", "FPR95_mark", "AUROC_mark", "frames"]
+            ["method", *PAPER_METRICS, "masks", "AP", "FPR95", "AUROC", "AP_mark", "FPR95_mark", "AUROC_mark"]
+            + ["frames", "extra"]
         )
         for row, mark in zip(everything, marks, strict=True):
-            weights = row.get("weights", {})
-            fractions = [str(Fraction(weights[m]).limit_denominator(10)) if m in weights else "" for m in PAPER_METRICS]
-            cells = fractions if "weights" in row else ["MNAD baseline", "", "", "", ""]
-            lines.append(
-                "| "
-                + " | ".join(
-                    [*cells, row["masks"], *(_percent(row[k], mark[k]) for k, _ in SCORES), str(row["frames"])]
-                )
-                + " |"
-            )
             writer.writerow(
                 [
                     "UMAD" if "weights" in row else row["name"],
-                    *fractions,
+                    *(_fractions(row["weights"]) if "weights" in row else [""] * 5),
                     row["masks"],
                     *("" if row[k] is None else f"{row[k]:.6f}" for k, _ in SCORES),
                     *(mark[k] for k, _ in SCORES),
                     row["frames"],
+                    int(bool(row.get("extra"))),
                 ]
             )
-    text = "\n".join(lines) + "\n\n**bold** = best, _italic_ = second best per column (MNAD included). Values in %.\n"
-    md_path.write_text(text)
-    return text
 
 
-def pivot_table(rows: list[dict[str, Any]], baseline: dict[str, Any] | None, key: str = "AP") -> str:
-    """One score as a weight-row x mask-setting grid (Markdown), the compact view of the ablation."""
-    settings = list(dict.fromkeys(r["masks"] for r in rows))
-    labels = list(dict.fromkeys(r["weights_label"] for r in rows))
-    cell = {(r["weights_label"], r["masks"]): r[key] for r in rows}
-    lines = [f"| {key} (%) | " + " | ".join(settings) + " |", "|---|" + "---|" * len(settings)]
-    for label in labels:
-        lines.append(f"| {label} | " + " | ".join(_percent(cell.get((label, s))) for s in settings) + " |")
-    if baseline is not None:
-        lines.append("| MNAD baseline | " + " | ".join([_percent(baseline[key])] + [""] * (len(settings) - 1)) + " |")
-    return "\n".join(lines) + "\n"
+def component_table(components: dict[str, dict]) -> Table:
+    """SegmentMeIfYouCan component metrics per configuration."""
+    header = ["configuration", "threshold", "sIoU", "PPV", "mean F1", "GT components", "predicted components"]
+    lines = [
+        [
+            Cell(name),
+            Cell(f"{c['threshold']:.4g}"),
+            *(Cell(percent(_number(c[k]))) for k in ("sIoU", "PPV", "mean_F1")),
+            *text_cells(c["n_truth_components"], c["n_predicted_components"]),
+        ]
+        for name, c in components.items()
+    ]
+    note = "Score maps thresholded at each configuration's best pixel-F1 threshold; values in %."
+    return Table(header, lines, note if components else "(not computed)")
 
 
-def scenario_table(result: SweepResult, md_path: Path, csv_path: Path) -> str:
+def scenario_table(result: SweepResult, csv_path: Path) -> Table:
     """AP / FPR95 / AUROC per scenario for the default weight row under each mask setting and MNAD,
-    with the AnoVox categories found under the scenario's anomaly pixels."""
+    with the AnoVox categories found under the scenario's anomaly pixels; also written as CSV."""
     present = {label for per_run in result.per_scenario.values() for label in per_run}
     settings = [label for label in [*result.setting_labels(), "MNAD"] if label in present]
-    lines = [
-        "| scenario | anomaly | " + " | ".join(f"{s} AP / FPR95 / AUROC" for s in settings) + " |",
-        "|---|---|" + "---|" * len(settings),
-    ]
+    lines = []
     with open(csv_path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["scenario", "anomaly", "setting", "AP", "FPR95", "AUROC", "n_anomaly", "n_normal"])
         for run in sorted(result.per_scenario):
             tags = sorted(result.scenario_tags.get(run, ()))
             anomaly = "+".join(ANOMALY_CATEGORIES.get(t, str(t)) for t in tags) or "-"
-            cells = []
+            cells = text_cells(run, anomaly)
             for setting in settings:
                 metrics = result.per_scenario[run].get(setting)
                 if metrics is None:
-                    cells.append("")
+                    cells.append(Cell(""))
                     continue
                 s = metrics.compute()
-                cells.append(" / ".join(_percent(_number(s[k])) for k, _ in SCORES))
+                cells.append(Cell(" / ".join(percent(_number(s[k])) for k, _ in SCORES)))
                 writer.writerow(
                     [run, anomaly, setting, *(_number(s[k]) for k, _ in SCORES), s["n_anomaly"], s["n_normal"]]
                 )
-            lines.append(f"| {run} | {anomaly} | " + " | ".join(cells) + " |")
-    text = "\n".join(lines) + "\n"
-    md_path.write_text(text)
-    return text
+            lines.append(cells)
+    return Table(["scenario", "anomaly", *(f"{s} AP / FPR95 / AUROC" for s in settings)], lines)
 
 
-def selected_curves(result: SweepResult, rows: list[dict[str, Any]]) -> dict[str, PixelMetrics]:
+def selected_curves(result: SweepResult) -> dict[str, PixelMetrics]:
     """Curves worth drawing: the best-AP configuration, the default row per mask setting, MNAD."""
     curves: dict[str, PixelMetrics] = {}
     scored = [c for c in result.metrics if result.metrics[c].n_anomaly]
@@ -209,14 +254,53 @@ def selected_curves(result: SweepResult, rows: list[dict[str, Any]]) -> dict[str
     return curves
 
 
-def write_report(result: SweepResult, out: str | Path, log_path: str | Path | None = None) -> Path:
-    """Write every report file into `out`; returns the index.md path."""
+def run_protocol(result: SweepResult, layout: Layout) -> dict[str, Any]:
+    """The log's protocol (data, models, PD network) with what the sweep scored: drives, frame ids,
+    every-k and the resolutions; `umad compare` checks two runs' frames against it."""
+    return {
+        **result.protocol,
+        "layout": layout,
+        "sweep_every": result.every,
+        "drives": len(result.frames_evaluated),
+        "frames": sum(len(seqs) for seqs in result.frames_evaluated.values()),
+        "score_resolution": _shape(result.score_shapes),
+        "label_resolution": _shape(result.truth_shapes),
+        "frames_evaluated": result.frames_evaluated,
+    }
+
+
+def _shape(shapes: set[tuple[int, int]]) -> list[int] | list[list[int]] | None:
+    """One (h, w) as a list; several (a run that mixed sizes) as a list of them; None if none."""
+    ordered = sorted(shapes)
+    return list(ordered[0]) if len(ordered) == 1 else [list(s) for s in ordered] or None
+
+
+def write_report(
+    result: SweepResult, out: str | Path, log_path: str | Path | None = None, layout: Layout = "long"
+) -> Path:
+    """Write every report file into `out`; returns the index.md path.
+
+    Args:
+        result: the sweep.
+        out: report folder (created).
+        log_path: the log the sweep read, named in the report.
+        layout: `long` (table.md: one line per configuration) or `paper` (table.md in the paper's
+            layout: one line per weight row, AP and FPR95 per paper mask setting).
+    """
+    if layout not in LAYOUTS:
+        raise ValueError(f"report layout {layout!r}; expected one of {LAYOUTS}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows, baseline = table_rows(result), baseline_row(result)
+    paper_settings = result.paper_settings()
+    paper_labels = [s.label for s in paper_settings]
+    headline = headline_figures(rows, baseline, [(s.label, s.column) for s in paper_settings])
+    protocol = run_protocol(result, layout)
     stats = result.stats
     summary = {
         "log": str(log_path) if log_path else None,
+        "protocol": protocol,
+        "headline": headline,
         "rows": rows,
         "baseline": baseline,
         "default_weights": None if result.default_row is None else result.row_label(result.default_row),
@@ -230,98 +314,65 @@ def write_report(result: SweepResult, out: str | Path, log_path: str | Path | No
         },
         "segmenters": result.segmenters,
         "skipped_weight_rows": [result.row_label(i) for i in result.skipped_rows],
-        "log_stats": {k: v for k, v in vars(stats).items() if k != "segmenters"},
+        "log_stats": {k: v for k, v in vars(stats).items() if k not in ("segmenters", "map_notes")},
         "sweep_seconds": round(result.seconds, 2),
     }
     (out / "results.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
-    table = write_table(rows, baseline, out / "table.md", out / "table.csv")
-    summary_pivot = pivot_table(rows, baseline)
-    scenarios = scenario_table(result, out / "per_scenario.md", out / "per_scenario.csv")
-    plot_curves(selected_curves(result, rows), out / "pr_curves.png", out / "roc_curves.png")
-    overlay_files = []
+
+    long_table = ablation_table(rows, baseline)
+    table = paper_layout_table(rows, baseline, paper_labels) if layout == "paper" else long_table
+    write_ablation_csv(rows, baseline, out / "table.csv")
+    scenarios = scenario_table(result, out / "per_scenario.csv")
+    components = component_table(result.components)
+    protocol_text = protocol_line(protocol)
+    for name, written in (("table.md", table), ("per_scenario.md", scenarios), ("components.md", components)):
+        (out / name).write_text(f"{render_table_markdown(written)}\nProtocol: {protocol_text}\n")
+
+    plot_curves(selected_curves(result), out / "pr_curves.png", out / "roc_curves.png")
+    overlays = []
     for i, frame in enumerate(result.overlays):
         name = f"overlay_{i:02d}.png"
         title = f"{frame.run} #{frame.seq}: {frame.anomaly_pixels} anomaly pixels"
         plot_overlay_grid(frame.images, title, out / name)
-        overlay_files.append((name, title))
-    components = component_table(result.components)
-    (out / "components.md").write_text(components)
-    index = _index_markdown({**summary, "pivot": summary_pivot}, table, scenarios, components, overlay_files)
-    (out / "index.md").write_text(index)
-    (out / "index.html").write_text(_index_html(summary, out, overlay_files))
-    return out / "index.md"
+        overlays.append((name, title))
+
+    sections = [
+        Section("Headline", tables=headline_tables(headline)),
+        Section("AP by weights and mask settings", tables=[pivot_table(rows, baseline, paper_labels)]),
+        Section(
+            "Curves and frames with the largest anomalies",
+            images=[("pr_curves.png", "precision-recall"), ("roc_curves.png", "ROC"), *overlays],
+        ),
+        Section(
+            "Ablation table" + (" (the paper's layout)" if layout == "paper" else ""),
+            ["Files: results.json, table.md, table.csv (every configuration, one line each)."],
+            [table],
+        ),
+        Section(
+            "Per scenario (default weights)",
+            [f"Default weights: {summary['default_weights']}. Files: per_scenario.md, per_scenario.csv."],
+            [scenarios],
+        ),
+        Section("Component metrics (SegmentMeIfYouCan)", tables=[components]),
+        Section("Run", _run_lines(summary)),
+    ]
+    page = Page("UMAD evaluation report", protocol_text, sections)
+    index, _ = write_page(page, out, "index")
+    return index
 
 
-def _log_lines(summary: dict[str, Any]) -> list[str]:
+def _run_lines(summary: dict[str, Any]) -> list[str]:
     s = summary["log_stats"]
     lines = [
-        f"- log: `{summary['log']}`" if summary["log"] else "- log: (in memory)",
-        f"- frames: {s['frames']} grouped from {s['messages']} messages ({s['decoded']} decoded); "
-        f"{s['duplicates']} duplicates, {s['late']} late, {s['bad']} undecodable",
-        f"- sweep time: {summary['sweep_seconds']} s for {len(summary['rows'])} configurations",
-        f"- default weights for the breakdown and pictures: {summary['default_weights']}",
+        f"Log: {summary['log'] or '(in memory)'}",
+        f"Frames: {s['frames']} grouped from {s['messages']} messages ({s['decoded']} decoded); "
+        f"{s['duplicates']} duplicates, {s['late']} late, {s['bad']} undecodable.",
+        f"Sweep time: {summary['sweep_seconds']} s for {len(summary['rows'])} configurations.",
+        "Normalization per metric: "
+        + (", ".join(f"{m}: {n}" for m, n in summary["protocol"].get("normalization", {}).items()) or "unknown"),
     ]
     if s["truncated"]:
-        lines.append(f"- **log truncated**: {s['truncated']}")
+        lines.append(f"Log truncated: {s['truncated']}")
     if summary["skipped_weight_rows"]:
-        lines.append(f"- weight rows without their metrics in the log: {', '.join(summary['skipped_weight_rows'])}")
+        lines.append(f"Weight rows without their metrics in the log: {', '.join(summary['skipped_weight_rows'])}")
     return lines
-
-
-def _index_markdown(
-    summary: dict[str, Any], table: str, scenarios: str, components: str, overlays: list[tuple[str, str]]
-) -> str:
-    parts = ["# UMAD evaluation report", "", *_log_lines(summary), ""]
-    parts += ["## AP by weights and masks", "", summary["pivot"]]
-    parts += ["## Ablation table", "", "Files: `results.json`, `table.md`, `table.csv`.", "", table]
-    parts += ["## Component metrics (SegmentMeIfYouCan)", "", components]
-    parts += ["## Curves", "", "![precision-recall](pr_curves.png)", "![ROC](roc_curves.png)", ""]
-    parts += ["## Per scenario (default weights)", "", "Files: `per_scenario.md`, `per_scenario.csv`.", "", scenarios]
-    parts += ["## Frames with the largest anomalies", ""]
-    parts += [f"### {title}\n\n![{title}]({name})\n" for name, title in overlays] or ["(no frame with anomaly pixels)"]
-    return "\n".join(parts) + "\n"
-
-
-def markdown_tables_html(text: str) -> str:
-    """The report's Markdown (pipe tables, **best**, _second_, plain lines) as HTML, so the page
-    shows exactly the table files' values and marks."""
-
-    def cell(c: str, tag: str) -> str:
-        c = html.escape(c.strip())
-        c = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", c)
-        c = re.sub(r"(?<![\w])_(.+?)_(?![\w])", r"<i>\1</i>", c)
-        return f"<{tag}>{c}</{tag}>"
-
-    parts, rows = [], []
-    for line in [*text.splitlines(), ""]:
-        if line.startswith("|"):
-            if not set(line) <= set("|-: "):
-                rows.append(line.strip().strip("|").split("|"))
-            continue
-        if rows:
-            head = "".join(cell(c, "th") for c in rows[0])
-            body = "".join("<tr>" + "".join(cell(c, "td") for c in r) + "</tr>" for r in rows[1:])
-            parts.append(f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")
-            rows = []
-        if line.strip():
-            parts.append(f"<p>{cell(line, 'span')}</p>")
-    return "".join(parts)
-
-
-def _index_html(summary: dict[str, Any], out: Path, overlays: list[tuple[str, str]]) -> str:
-    def tables(name: str) -> str:
-        return markdown_tables_html((out / name).read_text())
-
-    items = "".join(f"<li>{html.escape(line[2:])}</li>" for line in _log_lines(summary))
-    pictures = "".join(f"<h3>{html.escape(t)}</h3><img src='{n}' alt='{html.escape(t)}'>" for n, t in overlays)
-    return (
-        "<!doctype html><html><head><meta charset='utf-8'><title>UMAD evaluation report</title>"
-        "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:12px}"
-        "td,th{border:1px solid #ccc;padding:2px 6px}img{max-width:100%}</style></head><body>"
-        f"<h1>UMAD evaluation report</h1><ul>{items}</ul>"
-        f"<h2>Ablation table</h2>{tables('table.md')}"
-        f"<h2>Component metrics (SegmentMeIfYouCan)</h2>{tables('components.md')}"
-        "<h2>Curves</h2><img src='pr_curves.png' alt='precision-recall'><img src='roc_curves.png' alt='ROC'>"
-        f"<h2>Per scenario (default weights)</h2>{tables('per_scenario.md')}"
-        f"<h2>Frames with the largest anomalies</h2>{pictures}</body></html>\n"
-    )
