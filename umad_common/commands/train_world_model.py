@@ -14,9 +14,10 @@ import argparse
 import json
 import os
 import shlex
+from dataclasses import asdict
 from pathlib import Path
 
-DEFAULT_EPOCHS = 10
+DEFAULT_EPOCHS = 20
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -65,9 +66,11 @@ def configs_of(args: argparse.Namespace):
                 "objects, as MODEL.json"
             ) from None
         epochs, seed = int(saved.get("epochs", epochs)), int(saved.get("seed", seed))
-    for name in ("batch_size", "sequence_length", "holdout"):
-        if getattr(args, name) is not None:
-            setattr(train, name, getattr(args, name))
+    overrides = {name: getattr(args, name) for name in ("batch_size", "sequence_length", "holdout")}
+    try:
+        train = TrainConfig(**{**asdict(train), **{k: v for k, v in overrides.items() if v is not None}})
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
     if args.frame_step is not None:
         model_config.frame_step = args.frame_step
     epochs = epochs if args.epochs is None else args.epochs

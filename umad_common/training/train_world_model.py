@@ -26,6 +26,7 @@ from umad_common.models.weights import weight_paths
 from umad_common.models.world_model import (
     Observation,
     ObserveResult,
+    State,
     WorldModel,
     WorldModelConfig,
     action_of,
@@ -50,10 +51,20 @@ class TrainConfig:
     free_nats: float = 0.02  # KL per latent value (nats) below which it is not penalised
     sample_posterior: bool = False  # decode a sample of the posterior in training (as Dreamer) instead of
     #   its mean; the mean trains faster and sharper, the KL still prices every nat it moves from the prior
+    prediction_steps: int = 3  # open-loop prior rollout per window, ending at its last frame, whose decoded
+    #   frames are trained like reconstructions (the predictions x̂_{t|t-k} the temporal map compares)
+    prediction_weight: float = 0.5  # weight of that prediction loss next to the reconstruction loss
     ssim_weight: float = 0.2  # weight of the 1 - SSIM loss (structure: edges, texture) next to the L1
     holdout: int = 1  # last normal drives (sorted) kept out of training for evaluation
     bf16: bool = True  # bfloat16 autocast and channels-last convolutions (2-3x faster on CPUs with
     #   AVX-512 BF16; training falls back to float32 where the CPU has none); the loss stays float32
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.prediction_steps < self.sequence_length:
+            raise ValueError(
+                f"prediction_steps {self.prediction_steps} must be at least 1 and below sequence_length "
+                f"{self.sequence_length} (the rollout starts from a posterior state inside the window)"
+            )
 
 
 @dataclass
@@ -178,18 +189,33 @@ def ssim_loss(a: torch.Tensor, b: torch.Tensor, sigma: float = 1.5, radius: int 
     return 1 - ssim.mean()
 
 
-def world_model_loss(result: ObserveResult, obs: Observation, train: TrainConfig) -> dict[str, torch.Tensor]:
-    """Image reconstruction (L1 + SSIM) plus balanced, free-nats KL; returns every term.
+def image_loss(predicted: torch.Tensor, target: torch.Tensor, train: TrainConfig) -> tuple[torch.Tensor, ...]:
+    """L1 + ssim_weight x (1 - SSIM) of (B, T, 3, H, W) images, computed in float32; also the two
+    terms and the (detached) MSE."""
+    predicted = predicted.float()
+    error = predicted - target
+    l1 = error.abs().mean()
+    ssim = ssim_loss(predicted.flatten(0, 1), target.flatten(0, 1))
+    return l1 + train.ssim_weight * ssim, l1, ssim, error.detach().pow(2).mean()
+
+
+def world_model_loss(
+    result: ObserveResult, predicted: torch.Tensor, obs: Observation, train: TrainConfig
+) -> dict[str, torch.Tensor]:
+    """Image reconstruction (L1 + SSIM), the same on the open-loop predictions, plus balanced,
+    free-nats KL; returns every term.
 
     The L1 is the same per-pixel |x - x̂| the absolute difference map measures: it keeps lane marks
     sharp instead of averaging them away; the SSIM term asks for the local structure (edges,
-    texture) the SSIM map compares. The KL is summed over the latent map, so the posterior pays for
-    every cell where it departs from what the prior expected. The MSE is reported for the PSNR."""
-    rgb = result.rgb.float()  # the loss in float32 whatever precision the model ran in
-    error = rgb - obs.rgb
-    rgb_l1 = error.abs().mean()
-    rgb_ssim = ssim_loss(rgb.flatten(0, 1), obs.rgb.flatten(0, 1))
-    terms = {"rgb_l1": rgb_l1, "rgb_ssim": rgb_ssim, "rgb_mse": error.detach().pow(2).mean()}
+    texture) the SSIM map compares. `predicted` (B, prediction_steps, 3, H, W) are the window's last
+    frames as the prior drew them from the posterior state before them: without this term only the
+    KL teaches the prior, and the posterior can make it cheap by widening both distributions. The KL
+    is summed over the latent map, so the posterior pays for every cell where it departs from what
+    the prior expected. The MSE is reported for the PSNR."""
+    recon, rgb_l1, rgb_ssim, rgb_mse = image_loss(result.rgb, obs.rgb, train)
+    terms = {"rgb_l1": rgb_l1, "rgb_ssim": rgb_ssim, "rgb_mse": rgb_mse}
+    prediction, _, _, pred_mse = image_loss(predicted, obs.rgb[:, -predicted.shape[1] :], train)
+    terms["pred_mse"] = pred_mse
     post = (result.post_mean.float(), result.post_std.float())
     prior = (result.prior_mean.float(), result.prior_std.float())
     kl_prior = gaussian_kl(*(t.detach() for t in post), *prior).mean()
@@ -197,8 +223,16 @@ def world_model_loss(result: ObserveResult, obs: Observation, train: TrainConfig
     kl = train.kl_balance * kl_prior + (1 - train.kl_balance) * kl_post
     free = train.free_nats * post[0].shape[-1]
     terms["kl"] = kl_prior.detach()
-    terms["loss"] = rgb_l1 + train.ssim_weight * rgb_ssim + train.kl_weight * torch.clamp(kl, min=free)
+    terms["loss"] = recon + train.prediction_weight * prediction + train.kl_weight * torch.clamp(kl, min=free)
     return terms
+
+
+def open_loop_predictions(model: WorldModel, result: ObserveResult, prev_actions: torch.Tensor, steps: int):
+    """The prior rolled `steps` steps from the posterior state `steps + 1` before each window's end,
+    with the actions taken: (B, steps, 3, H, W) predictions of the window's last `steps` frames."""
+    start = result.states.h.shape[1] - 1 - steps
+    state = State(result.states.h[:, start], result.states.z[:, start])
+    return model.imagine(state, prev_actions[:, start + 1 : start + 1 + steps]).rgb
 
 
 def psnr(mse: float) -> float:
@@ -273,14 +307,15 @@ def train_world_model(
         rng = np.random.default_rng([seed, epoch])
         torch.manual_seed(seed * 100_003 + epoch)
         windows = epoch_windows(drives, train.sequence_length, rng)
-        sums = {"loss": 0.0, "rgb_l1": 0.0, "rgb_ssim": 0.0, "rgb_mse": 0.0, "kl": 0.0}
+        sums = {"loss": 0.0, "rgb_l1": 0.0, "rgb_ssim": 0.0, "rgb_mse": 0.0, "pred_mse": 0.0, "kl": 0.0}
         for step in range(steps_per_epoch):
             batch = windows[step * train.batch_size : (step + 1) * train.batch_size]
             obs, prev_actions = observation_batch(drives, batch, train.sequence_length)
             obs = scale_speed(obs, model_config)
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
                 result = model.observe(obs, prev_actions, sample=train.sample_posterior)
-            terms = world_model_loss(result, obs, train)
+                predicted = open_loop_predictions(model, result, prev_actions, train.prediction_steps)
+            terms = world_model_loss(result, predicted, obs, train)
             optimizer.zero_grad(set_to_none=True)
             terms["loss"].backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), train.grad_clip)
@@ -290,9 +325,16 @@ def train_world_model(
             for key, value in values.items():
                 sums[key] += value
             bar.update(1)
-            bar.set_postfix(epoch=epoch + 1, loss=f"{values['loss']:.4f}", psnr=f"{psnr(values['rgb_mse']):.2f}")
+            bar.set_postfix(
+                epoch=epoch + 1,
+                loss=f"{values['loss']:.4f}",
+                psnr=f"{psnr(values['rgb_mse']):.2f}",
+                pred_psnr=f"{psnr(values['pred_mse']):.2f}",
+            )
         means = {key: value / steps_per_epoch for key, value in sums.items()}
-        history.append({"epoch": epoch + 1, **means, "psnr": psnr(means["rgb_mse"])})
+        history.append(
+            {"epoch": epoch + 1, **means, "psnr": psnr(means["rgb_mse"]), "pred_psnr": psnr(means["pred_mse"])}
+        )
         record = {
             "train_config": asdict(train),
             "command": command,
