@@ -100,11 +100,12 @@ class Replayer(Source):
             raise IndexError(f"seq {seq} out of range for run {run!r} with {self.run_length(run)} frames")
         scenario = self.scenarios[run]
         stamp_ns = seq * scenario.every * RECORDING_PERIOD_NS  # AnoVox frames are 10 Hz apart
-        return SourceFrame(run, seq, stamp_ns, frame_outputs(scenario[seq], run))
+        return SourceFrame(run, seq, stamp_ns, frame_outputs(scenario[seq], run, scenario.sensors))
 
 
-def frame_outputs(frame: AnoVoxFrame, scenario: str) -> dict[str, Output]:
-    """The five topics of one frame; absent modalities become empty or zero arrays."""
+def frame_outputs(frame: AnoVoxFrame, scenario: str, sensors: dict | None = None) -> dict[str, Output]:
+    """The five topics of one frame; absent modalities become empty or zero arrays. `sensors` (the
+    scenario's sensor_setup.json, see `read_sensor_setup`) travels as the lidar's meta `sensors`."""
     height, width = frame.rgb.shape[:2]
     lidar = frame.lidar if frame.lidar is not None else np.zeros((0, 4), np.float32)
     route = frame.route if frame.route is not None else np.zeros(ROUTE_SHAPE, np.uint8)
@@ -112,7 +113,7 @@ def frame_outputs(frame: AnoVoxFrame, scenario: str) -> dict[str, Output]:
     semantic = frame.semantic if frame.semantic is not None else np.zeros((height, width), np.uint8)
     return {
         "camera": Output({"rgb": frame.rgb}, {"frame_id": int(frame.frame_id), "scenario": scenario}),
-        "lidar": Output({"points": np.ascontiguousarray(lidar, np.float32)}),
+        "lidar": Output({"points": np.ascontiguousarray(lidar, np.float32)}, {"sensors": sensors} if sensors else {}),
         "ego": Output({"ego": frame.ego.as_array()}),
         "route": Output({"route": np.ascontiguousarray(route, np.uint8)}),
         "truth": Output(

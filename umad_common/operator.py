@@ -43,10 +43,12 @@ class NoParams(BaseModel):
 @dataclass(frozen=True)
 class Input:
     """An input port. `many=True` ports take a wildcard source (e.g. `diff_*/map`) and receive a
-    dict `{producer_id: Message}` of every live producer that matched."""
+    dict `{producer_id: Message}` of every live producer that matched. An `optional` port may stay
+    unwired; frames then join without it (`Operator.wiring_problems` says when it is needed)."""
 
     name: str
     many: bool = False
+    optional: bool = False
 
 
 @dataclass
@@ -123,6 +125,12 @@ class Operator:
         if isinstance(params, cls.Params):
             return params
         return cls.Params.model_validate(dict(params))
+
+    @classmethod
+    def wiring_problems(cls, params: BaseModel, wired: set[str]) -> list[str]:
+        """What `umad graph check` should refuse about these (valid) parameters given the wired input
+        ports, e.g. an optional port the chosen method reads; empty when all is well."""
+        return []
 
     def update_params(self, params: BaseModel) -> None:
         """Called between frames when the control key changes a parameter (already validated)."""
