@@ -13,10 +13,10 @@ its own environment). A method not in `SEGMENTERS` loads by import path:
 
 from __future__ import annotations
 
-import importlib
 from typing import Any
 
 from umad_common.operator import Context
+from umad_common.plugins import registered_class
 from umad_common.segmentation.base import (
     SegmenterInputError,
     SegmenterMethod,
@@ -41,21 +41,7 @@ class UnknownSegmenterError(LookupError):
 
 def segmenter_class(name: str) -> type[SegmenterMethod]:
     """The class for a registered name or a `package.module:ClassName` import path."""
-    if name in SEGMENTERS:
-        return SEGMENTERS[name]
-    module_name, _, attr = name.partition(":")
-    if not attr:
-        raise UnknownSegmenterError(
-            f"unknown segmenter method {name!r}; expected one of {sorted(SEGMENTERS)} or `package.module:ClassName`"
-        )
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise UnknownSegmenterError(f"cannot import module {module_name!r} for segmenter {name!r}: {exc}") from None
-    cls = getattr(module, attr, None)
-    if not (isinstance(cls, type) and issubclass(cls, SegmenterMethod)):
-        raise UnknownSegmenterError(f"segmenter {name!r}: expected a SegmenterMethod subclass, got {cls!r}")
-    return cls
+    return registered_class(name, SEGMENTERS, SegmenterMethod, "segmenter method", UnknownSegmenterError)
 
 
 def build_segmenter(
