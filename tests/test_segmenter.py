@@ -396,3 +396,18 @@ def test_geometry_finds_a_rendered_anomaly_of_the_built_in_world():
         iou = (masks & anomaly).sum(axis=(1, 2)) / (masks | anomaly).sum(axis=(1, 2))
         best = max(best, float(iou.max()))
     assert best >= 0.5
+
+
+def test_bench_takes_methods_and_grids_from_the_registry():
+    from umad_common.benchmarks.segmenters import VALIDATION_SEED, configurations
+
+    assert VALIDATION_SEED not in (0, 1), "neither the training nor the evaluation seed"
+    assert configurations(["geometry", "slic"], tune=False) == [
+        {"method": "geometry", "options": {}},
+        {"method": "slic", "options": {}},
+    ]
+    grid = SEGMENTERS["felzenszwalb"].tuning_grid
+    tuned = configurations(["felzenszwalb"], tune=True)
+    assert len(tuned) == len(grid["scale"]) * len(grid["sigma"])
+    defaults = SEGMENTERS["felzenszwalb"].Params()
+    assert {"scale": defaults.scale, "sigma": defaults.sigma} in [c["options"] for c in tuned], "default in its grid"

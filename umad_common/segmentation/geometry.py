@@ -109,7 +109,12 @@ class Geometry(SegmenterMethod):
 
     name = "geometry"
     needs = ("lidar",)
-    tuning_grid = {"cluster_eps": [0.5, 1.0], "share": [0.3, 0.6]}
+    tuning_grid = {
+        "cluster_eps": [0.7, 1.0],
+        "share": [0.3, 0.5],
+        "ground_height": [0.1, 0.2],
+        "rest": ["felzenszwalb", "slic"],
+    }
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")

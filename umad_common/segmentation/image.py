@@ -18,7 +18,7 @@ from threadpoolctl import threadpool_limits
 from umad_common.operator import Context, Frame
 from umad_common.segmentation.base import SegmenterMethod, connected_regions, labels_to_masks
 
-TUNED = "chosen on validation seed 2 by `umad bench segmenters --tune`"
+TUNED = "chosen on validation seed 2 (best refined AP) by `umad bench segmenters --tune`"
 
 
 class Felzenszwalb(SegmenterMethod):
@@ -30,7 +30,7 @@ class Felzenszwalb(SegmenterMethod):
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
 
-        scale: float = Field(100.0, gt=0, description=f"larger -> fewer, larger segments; {TUNED}")
+        scale: float = Field(300.0, gt=0, description=f"larger -> fewer, larger segments; {TUNED}")
         sigma: float = Field(0.3, ge=0, description=f"Gaussian pre-smoothing (px); {TUNED}")
         min_size: int = Field(15, ge=1, description="smallest segment (px)")
 
@@ -49,8 +49,8 @@ class Slic(SegmenterMethod):
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
 
-        n_segments: int = Field(200, ge=1, description="approximate number of superpixels")
-        compactness: float = Field(20.0, gt=0, description="colour vs position balance; larger -> squarer")
+        n_segments: int = Field(100, ge=1, description=f"approximate number of superpixels; {TUNED}")
+        compactness: float = Field(20.0, gt=0, description=f"colour vs position balance; larger -> squarer; {TUNED}")
         sigma: float = Field(1.0, ge=0, description="Gaussian pre-smoothing (px)")
 
     def __call__(self, image: np.ndarray, frame: Frame) -> np.ndarray:
@@ -139,9 +139,11 @@ class KMeansSegments(SegmenterMethod):
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
 
-        clusters: int = Field(32, ge=2, description="number of feature clusters")
+        clusters: int = Field(16, ge=2, description=f"number of feature clusters; {TUNED}")
         sigma: float = Field(0.5, ge=0, description="Gaussian pre-smoothing of the image (px)")
-        position_weight: float = Field(0.25, ge=0, description="weight of the (y, x) position against Lab colour")
+        position_weight: float = Field(
+            0.5, ge=0, description=f"weight of the (y, x) position against Lab colour; {TUNED}"
+        )
         gradient_weight: float = Field(0.0, ge=0, description="weight of the local lightness-gradient feature")
         features: Literal["colour", "feature_net"] = Field(
             "colour",
