@@ -16,6 +16,8 @@ from skimage.measure import label as label_regions
 
 from umad_common.operator import Context, Frame
 
+TUNED = "chosen on validation seed 2 (best refined AP) by `umad bench segmenters --tune`"  # provenance
+
 
 class NoOptions(BaseModel):
     """Parameters of a method that takes none."""

@@ -27,7 +27,7 @@ from scipy import ndimage
 from sklearn.cluster import DBSCAN
 
 from umad_common.operator import Context, Frame
-from umad_common.segmentation.base import SegmenterInputError, SegmenterMethod, input_array, masks_to_labels
+from umad_common.segmentation.base import TUNED, SegmenterInputError, SegmenterMethod, input_array, masks_to_labels
 
 Triplet = tuple[float, float, float]
 
@@ -138,17 +138,22 @@ class Geometry(SegmenterMethod):
         max_range: float = Field(80.0, gt=0, description="ignore points farther than this (m)")
         ground_tolerance: float = Field(0.1, gt=0, description="RANSAC: inlier distance to the ground plane (m)")
         ground_iterations: int = Field(64, ge=1, description="RANSAC: candidate planes")
-        ground_height: float = Field(0.2, ge=0, description="points less than this above the ground are ground (m)")
-        cluster_eps: float = Field(0.7, gt=0, description="DBSCAN: neighbourhood radius (m)")
+        ground_height: float = Field(
+            0.1, ge=0, description=f"points less than this above the ground are ground (m); {TUNED}"
+        )
+        cluster_eps: float = Field(0.7, gt=0, description=f"DBSCAN: neighbourhood radius (m); {TUNED}")
         cluster_min_points: int = Field(4, ge=1, description="DBSCAN: points in a neighbourhood to seed a cluster")
         share: float = Field(
-            0.5, gt=0, le=1, description="a rest segment joins an object when this share of its lidar-hit pixels is it"
+            0.5,
+            gt=0,
+            le=1,
+            description=f"a rest segment joins an object when this share of its lidar-hit pixels is it; {TUNED}",
         )
         close_px: int = Field(1, ge=0, description="close each object's hit pixels with this radius (px) first")
         rest: str = Field(
-            "felzenszwalb",
+            "slic",
             description="the method whose segments cover the rest of the frame and grow the objects (a registered "
-            "name or `package.module:Class`; its masks are flattened to a tiling); empty: object masks only",
+            f"name or `package.module:Class`; its masks are flattened to a tiling); empty: object masks only; {TUNED}",
         )
         rest_options: dict[str, Any] = Field(default_factory=dict, description="the rest method's options")
         no_lidar: Literal["error", "rest"] = Field(

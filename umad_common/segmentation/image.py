@@ -16,9 +16,7 @@ from sklearn.cluster import KMeans
 from threadpoolctl import threadpool_limits
 
 from umad_common.operator import Context, Frame
-from umad_common.segmentation.base import SegmenterMethod, connected_regions, labels_to_masks
-
-TUNED = "chosen on validation seed 2 (best refined AP) by `umad bench segmenters --tune`"
+from umad_common.segmentation.base import TUNED, SegmenterMethod, connected_regions, labels_to_masks
 
 
 class Felzenszwalb(SegmenterMethod):
