@@ -343,16 +343,20 @@ def test_geometry_reads_the_camera_and_mounts_from_the_sensor_setup(tmp_path):
         "location": [0, 0, 1.8],
         "rotation": [0, 0, 0],
     }
-    op = Segmenter({"method": "geometry", "options": {"rest": ""}})  # calibration: data
-    masks = op.process(lidar_frame(box_on_a_plane(), sensors))["masks"].arrays["masks"]
-    assert masks.shape == (1, H, W) and (masks[0] & box_pixels(above=0.25)).sum() >= 0.9 * box_pixels(above=0.25).sum()
+    op = Segmenter({"method": "geometry", "options": {"rest": "", "calibration": "data"}})
+    level = op.process(lidar_frame(box_on_a_plane(), sensors))["masks"].arrays["masks"]
+    assert level.shape == (1, H, W) and (level[0] & box_pixels(above=0.25)).sum() >= 0.9 * box_pixels(above=0.25).sum()
     sensors["lidar"]["location"] = [0, 0, 2.8]  # the lidar 1 m above the camera: the box appears 1 m higher
     masks = op.process(lidar_frame(box_on_a_plane(), sensors))["masks"].arrays["masks"]
     assert (
         masks[0].any() and np.flatnonzero(masks[0].any(axis=1)).max() < np.flatnonzero(box_pixels().any(axis=1)).min()
     )
-    with pytest.raises(ValueError, match="calibration: options"):
+    with pytest.raises(ValueError, match="calibration: options or auto"):
         op.process(lidar_frame(box_on_a_plane()))  # no `sensors` meta
+    auto = Segmenter({"method": "geometry", "options": {"rest": ""}})  # the default: data, else the options
+    np.testing.assert_array_equal(auto.process(lidar_frame(box_on_a_plane(), sensors))["masks"].arrays["masks"], masks)
+    no_setup = auto.process(lidar_frame(box_on_a_plane()))["masks"].arrays["masks"]  # AnoVox's camera, same FOV
+    np.testing.assert_array_equal(no_setup, level)
     sensors["camera"]["rotation"] = [0, 10, 0]
     with pytest.raises(ValueError, match="camera rotation"):
         op.process(lidar_frame(box_on_a_plane(), sensors))

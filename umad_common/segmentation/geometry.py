@@ -119,10 +119,11 @@ class Geometry(SegmenterMethod):
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
 
-        calibration: Literal["data", "options"] = Field(
-            "data",
+        calibration: Literal["auto", "data", "options"] = Field(
+            "auto",
             description="data: camera and mounts from the lidar message's meta `sensors` (the scenario's "
-            "sensor_setup.json; a frame without it is refused); options: the fields below",
+            "sensor_setup.json; a frame without it is refused); options: the fields below; auto: data when the "
+            "frame has it, else the options, with a warning once per run",
         )
         image_size: tuple[int, int] = Field(
             (768, 512), description="calibration options: camera width, height (px) before any resize (AnoVox)"
@@ -172,9 +173,8 @@ class Geometry(SegmenterMethod):
         p = self.params
         cls = rest_class(p.rest, p.rest_options)
         self.rest = cls.from_options(p.rest_options, context) if cls else None
-        self.rig = None
-        if p.calibration == "options":
-            self.rig = SensorRig(p.image_size[0], p.image_size[1], p.fov, p.camera_location, p.lidar_location)
+        self.options_rig = SensorRig(p.image_size[0], p.image_size[1], p.fov, p.camera_location, p.lidar_location)
+        self.assumed_runs: set[str] = set()  # auto calibration: runs already warned about
 
     @classmethod
     def required_inputs(cls, params: BaseModel) -> set[str]:
@@ -195,18 +195,29 @@ class Geometry(SegmenterMethod):
                     "expected a (N, 4) cloud on input 'lidar', or option no_lidar: rest"
                 )
             return rest
-        rig = self.rig or self._rig_from(frame)
+        rig = self.rig_of(frame)
         objects = self.objects(points, rig, shape, rest)
         rest = rest & ~objects.any(axis=0)
         return np.concatenate([objects, rest[rest.any(axis=(1, 2))]], axis=0)
 
-    def _rig_from(self, frame: Frame) -> SensorRig:
+    def rig_of(self, frame: Frame) -> SensorRig:
+        """The camera and mounts for this frame, as the `calibration` option says."""
+        p = self.params
         sensors = frame.inputs["lidar"].meta.get("sensors")
+        if p.calibration == "options" or (p.calibration == "auto" and not sensors):
+            if p.calibration == "auto" and frame.run not in self.assumed_runs:
+                self.assumed_runs.add(frame.run)
+                self.context.log.warning(
+                    "segmenter %s: the lidar carries no sensor setup; geometry projects with the options' camera %s",
+                    frame.frame_id,
+                    self.options_rig,
+                )
+            return self.options_rig
         if not sensors:
             raise SegmenterInputError(
                 f"segmenter {frame.frame_id}: method 'geometry' with calibration 'data' needs the lidar message's meta "
                 "`sensors` (the replayer sends the scenario's sensor_setup.json; the benchmark layout has none); "
-                "set option calibration: options (defaults: AnoVox's 768x512, FOV 90, mounts (0, 0, 1.8))"
+                "set option calibration: options or auto (defaults: AnoVox's 768x512, FOV 90, mounts (0, 0, 1.8))"
             )
         return SensorRig.from_sensors(sensors, f"segmenter {frame.frame_id}")
 
