@@ -128,3 +128,11 @@ def test_segmenter_options_are_checked_against_the_method_schema():
     seg = {"id": "seg", "kind": "segmenter", "inputs": {"frame": "replayer/camera"}}
     text = problems(graph(REPLAYER, {**seg, "params": {"method": "felzenszwalb", "options": {"scale": -1}}}))
     assert "operator 'seg'" in text and "method 'felzenszwalb' options: scale" in text
+
+
+def test_a_segmenter_option_is_set_by_its_dotted_name():
+    seg = {"id": "seg", "kind": "segmenter", "inputs": {"frame": "replayer/camera"}, "params": {"method": "slic"}}
+    g = validate_graph(graph(REPLAYER, seg))
+    assert g.with_params({"seg": {"options.n_segments": 50}}).op("seg").params["options"] == {"n_segments": 50}
+    with pytest.raises(GraphError, match="method 'slic' options: n_segments"):
+        g.with_params({"seg": {"options.n_segments": 0}})
