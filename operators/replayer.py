@@ -106,12 +106,16 @@ class Replayer(Source):
             raise IndexError(f"seq {seq} out of range for run {run!r} with {self.run_length(run)} frames")
         scenario = self.scenarios[run]
         stamp_ns = seq * scenario.every * RECORDING_PERIOD_NS  # AnoVox frames are 10 Hz apart
-        return SourceFrame(run, seq, stamp_ns, frame_outputs(scenario[seq], run, seq % self.params.score_every == 0))
+        scored = seq % self.params.score_every == 0
+        return SourceFrame(run, seq, stamp_ns, frame_outputs(scenario[seq], run, scenario.sensors, scored))
 
 
-def frame_outputs(frame: AnoVoxFrame, scenario: str, scored: bool = True) -> dict[str, Output]:
-    """The five topics of one frame; absent modalities become empty or zero arrays. A frame that is
-    not scored carries meta `skip` on every topic and no labels."""
+def frame_outputs(
+    frame: AnoVoxFrame, scenario: str, sensors: dict | None = None, scored: bool = True
+) -> dict[str, Output]:
+    """The five topics of one frame; absent modalities become empty or zero arrays. `sensors` (the
+    scenario's sensor_setup.json, see `read_sensor_setup`) travels as the lidar's meta `sensors`. A
+    frame that is not scored carries meta `skip` on every topic and no labels."""
     height, width = frame.rgb.shape[:2]
     lidar = frame.lidar if frame.lidar is not None else np.zeros((0, 4), np.float32)
     route = frame.route if frame.route is not None else np.zeros(ROUTE_SHAPE, np.uint8)
@@ -125,7 +129,9 @@ def frame_outputs(frame: AnoVoxFrame, scenario: str, scored: bool = True) -> dic
     }
     return {
         "camera": Output({"rgb": frame.rgb}, {"frame_id": int(frame.frame_id), "scenario": scenario, **skip}),
-        "lidar": Output({"points": np.ascontiguousarray(lidar, np.float32)}, skip),
+        "lidar": Output(
+            {"points": np.ascontiguousarray(lidar, np.float32)}, {**skip, **({"sensors": sensors} if sensors else {})}
+        ),
         "ego": Output({"ego": frame.ego.as_array()}, skip),
         "route": Output({"route": np.ascontiguousarray(route, np.uint8)}, skip),
         "truth": Output(truth if scored else {}, skip),

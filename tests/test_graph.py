@@ -108,3 +108,31 @@ def test_check_names_missing_interpreters_and_tls_files_but_workers_load_the_gra
     assert result.returncode == 1
     assert f"python interpreter {tmp_path / 'nowhere/bin/python'} not found" in result.stderr
     assert f"tls.root_ca: {tmp_path / 'ca.pem'} not found" in result.stderr
+
+
+REPLAYER = {"id": "replayer", "kind": "replayer", "params": {"source": "."}}
+
+
+def test_a_segmenter_method_names_the_optional_input_it_needs():
+    frame_only = {"id": "seg", "kind": "segmenter", "inputs": {"frame": "replayer/camera"}}
+    validate_graph(graph(REPLAYER, {**frame_only, "params": {"method": "slic"}}))  # truth, lidar optional
+    text = problems(graph(REPLAYER, {**frame_only, "params": {"method": "geometry"}}))
+    assert "operator 'seg': method 'geometry' needs input 'lidar'" in text and "not wired" in text
+    text = problems(graph(REPLAYER, {**frame_only, "params": {"method": "geometry", "options": {"rest": "gt"}}}))
+    assert "needs input 'truth'" in text and "needs input 'lidar'" in text
+    wired = {**frame_only, "inputs": {"frame": "replayer/camera", "lidar": "replayer/lidar"}}
+    validate_graph(graph(REPLAYER, {**wired, "params": {"method": "geometry"}}))
+
+
+def test_segmenter_options_are_checked_against_the_method_schema():
+    seg = {"id": "seg", "kind": "segmenter", "inputs": {"frame": "replayer/camera"}}
+    text = problems(graph(REPLAYER, {**seg, "params": {"method": "felzenszwalb", "options": {"scale": -1}}}))
+    assert "operator 'seg'" in text and "method 'felzenszwalb' options: scale" in text
+
+
+def test_a_segmenter_option_is_set_by_its_dotted_name():
+    seg = {"id": "seg", "kind": "segmenter", "inputs": {"frame": "replayer/camera"}, "params": {"method": "slic"}}
+    g = validate_graph(graph(REPLAYER, seg))
+    assert g.with_params({"seg": {"options.n_segments": 50}}).op("seg").params["options"] == {"n_segments": 50}
+    with pytest.raises(GraphError, match="method 'slic' options: n_segments"):
+        g.with_params({"seg": {"options.n_segments": 0}})

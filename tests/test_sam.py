@@ -32,8 +32,8 @@ END_TO_END = textwrap.dedent(
     torch.manual_seed(0)
     checkpoint = sys.argv[1]
     torch.save(sam_model_registry["vit_b"](checkpoint=None).state_dict(), checkpoint)
-    op = Segmenter({"method": "sam", "sam_checkpoint": checkpoint, "sam_model": "vit_b",
-                    "sam_points_per_side": 4, "sam_pred_iou_thresh": 0.0, "sam_stability_score_thresh": 0.0})
+    op = Segmenter({"method": "sam", "options": {"checkpoint": checkpoint, "model": "vit_b", "points_per_side": 4,
+                                                 "pred_iou_thresh": 0.0, "stability_score_thresh": 0.0}})
     rng = np.random.default_rng(0)
     target = rng.random((48, 64, 3), dtype=np.float32)
     target[12:30, 20:44] = (0.9, 0.1, 0.1)

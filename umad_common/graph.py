@@ -213,11 +213,13 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
         if cls is None:
             continue
         try:
-            cls.validate_params(op.params)
+            params = cls.validate_params(op.params)
         except ValidationError as exc:
             for err in exc.errors():
                 loc = ".".join(str(x) for x in err["loc"]) or "params"
                 problems.append(f"operator {op.id!r}: parameter {loc!r}: {err['msg']}")
+        else:
+            problems += [f"operator {op.id!r}: {p}" for p in cls.wiring_problems(params, set(op.inputs))]
         if cls.ordered and op.replicas > 1:
             problems.append(f"operator {op.id!r}: kind {cls.kind!r} processes frames in order and cannot have replicas")
         ports = {p.name: p for p in cls.inputs}
@@ -225,7 +227,7 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
             problems.append(
                 f"operator {op.id!r}: unknown input port {name!r}; {cls.kind or cls.__name__} has {sorted(ports)}"
             )
-        for name in sorted(set(ports) - set(op.inputs)):
+        for name in sorted({p.name for p in cls.inputs if not p.optional} - set(op.inputs)):
             problems.append(f"operator {op.id!r}: input port {name!r} is not wired")
         for name in op.inputs:
             if name not in ports:

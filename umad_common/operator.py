@@ -19,7 +19,6 @@ parameters and call `process(frame)` in a unit test, no Zenoh needed.
 
 from __future__ import annotations
 
-import importlib
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -30,6 +29,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from umad_common.messages import Message
+from umad_common.plugins import import_class
 
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # holds umad_common/ (and operators/, replay/)
 
@@ -43,10 +43,12 @@ class NoParams(BaseModel):
 @dataclass(frozen=True)
 class Input:
     """An input port. `many=True` ports take a wildcard source (e.g. `diff_*/map`) and receive a
-    dict `{producer_id: Message}` of every live producer that matched."""
+    dict `{producer_id: Message}` of every live producer that matched. An `optional` port may stay
+    unwired; frames then join without it (`Operator.wiring_problems` says when it is needed)."""
 
     name: str
     many: bool = False
+    optional: bool = False
 
 
 @dataclass
@@ -123,6 +125,12 @@ class Operator:
         if isinstance(params, cls.Params):
             return params
         return cls.Params.model_validate(dict(params))
+
+    @classmethod
+    def wiring_problems(cls, params: BaseModel, wired: set[str]) -> list[str]:
+        """What `umad graph check` should refuse about these (valid) parameters given the wired input
+        ports, e.g. an optional port the chosen method reads; empty when all is well."""
+        return []
 
     def update_params(self, params: BaseModel) -> None:
         """Called between frames when the control key changes a parameter (already validated)."""
@@ -201,14 +209,4 @@ def load_operator_class(kind: str | None = None, uses: str | None = None) -> typ
         raise UnknownOperatorError(
             f"unknown operator kind {kind!r}; expected one of {sorted(BUILTIN_KINDS)} or `uses: pkg.module:Class`"
         )
-    module_name, _, attr = target.partition(":")
-    if not attr:
-        raise UnknownOperatorError(f"import path {target!r} must look like `package.module:ClassName`")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise UnknownOperatorError(f"cannot import module {module_name!r} for operator {target!r}: {exc}") from None
-    cls = getattr(module, attr, None)
-    if not (isinstance(cls, type) and issubclass(cls, Operator)):
-        raise UnknownOperatorError(f"{target!r} is not an Operator subclass")
-    return cls
+    return import_class(target, Operator, "operator", UnknownOperatorError)

@@ -105,7 +105,8 @@ class OperatorRuntime:
             self.keys.stats(op_id, self.replica_id), congestion_control=zenoh.CongestionControl.DROP
         )
         self.joiner = FrameJoiner(
-            [p.name for p in self.cls.inputs if not p.many], [p.name for p in self.cls.inputs if p.many]
+            [p.name for p in self.cls.inputs if not p.many and p.name in self.spec.inputs],
+            [p.name for p in self.cls.inputs if p.many and p.name in self.spec.inputs],
         )
         self._subscribers: list[Any] = []
         self._last_stats = 0.0

@@ -50,6 +50,8 @@ class LabelledFrame:
     instance: np.ndarray | None  # (H, W) int32, 0 = none
     semantic: np.ndarray | None  # (H, W) uint8
     fused: np.ndarray | None = None  # (h, w) float32 fused difference map, when measuring AP
+    lidar: np.ndarray | None = None  # (N, 4) float32 (x, -y, z, intensity)
+    sensors: dict | None = None  # the scenario's sensor setup (`read_sensor_setup`), the lidar's meta
 
 
 @dataclass
@@ -92,7 +94,14 @@ def anovox_frames(
             frame = scenario[seq]
             target = cv2.resize(frame.rgb, (size[1], size[0]), interpolation=cv2.INTER_AREA)
             sample = LabelledFrame(
-                scenario.name, seq, target.astype(np.float32) / 255.0, frame.anomaly, frame.instance, frame.semantic
+                scenario.name,
+                seq,
+                target.astype(np.float32) / 255.0,
+                frame.anomaly,
+                frame.instance,
+                frame.semantic,
+                lidar=frame.lidar,
+                sensors=scenario.sensors,
             )
             yield sample, frame
 
@@ -138,21 +147,20 @@ def fused_maps_along(
 
 
 def operator_frame(sample: LabelledFrame) -> Frame:
-    """The segmenter operator's joined inputs for one labelled frame."""
+    """The segmenter operator's joined inputs for one labelled frame (lidar when the drive has it)."""
     truth = {"anomaly": sample.anomaly}
     if sample.instance is not None:
         truth["instance"] = sample.instance
     if sample.semantic is not None:
         truth["semantic"] = sample.semantic
-    return Frame(
-        sample.run,
-        sample.seq,
-        0,
-        inputs={
-            "frame": Message(sample.run, sample.seq, arrays={"target": sample.target}),
-            "truth": Message(sample.run, sample.seq, arrays=truth),
-        },
-    )
+    inputs = {
+        "frame": Message(sample.run, sample.seq, arrays={"target": sample.target}),
+        "truth": Message(sample.run, sample.seq, arrays=truth),
+    }
+    if sample.lidar is not None:
+        meta = {"sensors": sample.sensors} if sample.sensors else {}
+        inputs["lidar"] = Message(sample.run, sample.seq, meta=meta, arrays={"points": sample.lidar})
+    return Frame(sample.run, sample.seq, 0, inputs=inputs)
 
 
 def frame_quality(

@@ -1,11 +1,14 @@
 """`umad bench segmenters`: ms/frame and anomaly isolation of each segmenter method on labelled drives.
 
-    umad bench segmenters [--data DIR] [--tune] [--world-model MODEL.safetensors]
+    umad bench segmenters [--data DIR] [--tune] [--world-model MODEL.safetensors] [--seed 2]
 
-Without `--data`, two anomalous drives of the built-in world are generated (a seed the shipped
-models never saw). The figures are defined in `umad_common.benchmarks.segmentation_quality`;
-`tune` measures a small grid around each method's defaults (the grid that chose the defaults in
-operators/segmenter.py); a world model adds the pixel AP after mean refinement of abs+ssim maps.
+The methods are the registry's (`umad_common.segmentation.SEGMENTERS`); a method whose defaults
+cannot run here (SAM without a checkpoint) is listed as skipped with the reason. Without `--data`,
+two anomalous drives of the built-in world are generated on the validation seed (2): the shipped
+models train on seed 0 and `umad eval` evaluates seed 1, so every default chosen with labels here
+(`--tune` measures each method's `tuning_grid`) is chosen on drives the evaluation never sees. The
+figures are defined in `umad_common.benchmarks.segmentation_quality`; a world model adds the pixel
+AP after mean refinement of its abs+ssim maps, next to the ground-truth masks' (`gt`).
 """
 
 from __future__ import annotations
@@ -14,25 +17,20 @@ import itertools
 import tempfile
 from pathlib import Path
 
-METHODS = ("gt", "felzenszwalb", "slic", "kmeans")
-
-TUNING_GRID: dict[str, dict[str, list]] = {
-    "gt": {"gt_stuff": [True, False]},
-    "felzenszwalb": {"felzenszwalb_scale": [50.0, 100.0, 200.0], "felzenszwalb_sigma": [0.3, 0.8]},
-    "slic": {"slic_n_segments": [100, 200, 300], "slic_compactness": [10.0, 20.0]},
-    "kmeans": {"kmeans_clusters": [16, 32, 48], "kmeans_position_weight": [0.25, 0.5]},
-}
-BUILTIN_DRIVES, BUILTIN_FRAMES, BUILTIN_SEED = 2, 60, 1
+VALIDATION_SEED = 2  # neither the training seed (0) nor the evaluation seed (1)
+BUILTIN_DRIVES, BUILTIN_FRAMES = 2, 60
 
 
 def configurations(methods: list[str], tune: bool) -> list[dict]:
-    """The parameter sets to measure: each method's defaults, or its tuning grid."""
+    """The segmenter parameters to measure: each method's defaults, or its tuning grid."""
+    from umad_common.segmentation import segmenter_class
+
     configs = []
     for method in methods:
-        grid = TUNING_GRID[method] if tune else {}
+        grid = segmenter_class(method).tuning_grid if tune else {}
         names = list(grid)
         for values in itertools.product(*(grid[n] for n in names)):
-            configs.append({"method": method, **dict(zip(names, values, strict=True))})
+            configs.append({"method": method, "options": dict(zip(names, values, strict=True))})
     return configs
 
 
@@ -43,16 +41,22 @@ def bench_segmenters(
     max_frames: int = 0,
     tune: bool = False,
     world_model: Path | None = None,
+    seed: int = VALIDATION_SEED,
 ) -> dict:
     from threadpoolctl import threadpool_limits
 
     from umad_common.benchmarks.segmentation_quality import anovox_frames, measure_segmenter
+    from umad_common.segmentation import SEGMENTERS
 
-    if data is None:
+    generated = data is None
+    if generated:
         from umad_common.datasets.synthetic.generator import generate_benchmark
 
         data = Path(tempfile.mkdtemp(prefix="umad-bench-segmenters-"))
-        generate_benchmark(data, 0, BUILTIN_DRIVES, BUILTIN_FRAMES, BUILTIN_SEED, (384, 256))
+        generate_benchmark(data, 0, BUILTIN_DRIVES, BUILTIN_FRAMES, seed, (384, 256))
+        print(f"generated {BUILTIN_DRIVES} anomalous drives of the built-in world, seed {seed}", flush=True)
+    else:
+        print(f"drives from {data} (seed: whatever made them; the built-in validation seed is {VALIDATION_SEED})")
     root = data / "anomalous" if (data / "anomalous").is_dir() else data
     threadpool_limits(1)  # one core, as in a deployed replica
     frames = []
@@ -61,12 +65,19 @@ def bench_segmenters(
         if max_frames and len(frames) >= max_frames:
             break
     print(f"{len(frames)} anomalous frames from {root}", flush=True)
-    rows = {}
-    for params in configurations(methods or list(METHODS), tune):
-        quality = measure_segmenter(params, frames)
+    rows, skipped = {}, {}
+    for params in configurations(methods or list(SEGMENTERS), tune):
+        try:
+            quality = measure_segmenter(params, frames)
+        except (ValueError, ImportError, OSError) as exc:
+            skipped[params["method"]] = f"{type(exc).__name__}: {exc}"
+            print(f"skipped {params['method']}: {exc}", flush=True)
+            continue
         print(quality.row(), flush=True)
-        name = ",".join(f"{k}={v}" for k, v in params.items() if k != "method")
+        name = ",".join(f"{k}={v}" for k, v in params["options"].items())
         rows[params["method"] + (f"[{name}]" if name else "")] = {
             k: v for k, v in vars(quality).items() if k != "params" and v is not None
         }
-    return {"data": str(root), "frames": len(frames), "methods": rows}
+    return {"data": str(root), "seed": seed if generated else None, "frames": len(frames), "methods": rows} | (
+        {"skipped": skipped} if skipped else {}
+    )

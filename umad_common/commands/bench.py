@@ -23,7 +23,13 @@ def add_arguments(parser):
         "--data", type=Path, default=None, help="segmenters: labelled AnoVox drives (default: generated)"
     )
     parser.add_argument("--tune", action="store_true", help="segmenters: measure a parameter grid per method")
+    parser.add_argument(
+        "--methods", nargs="+", default=None, help="segmenters: these methods only (default: every registered one)"
+    )
     parser.add_argument("--world-model", type=Path, default=None, help="segmenters: also measure refined pixel AP")
+    parser.add_argument(
+        "--seed", type=int, default=2, help="segmenters: seed of the generated drives (2: validation; eval uses 1)"
+    )
 
 
 def run(args) -> int:
@@ -65,7 +71,14 @@ def _run_one(name: str, args) -> dict:
     if name == "segmenters":
         from umad_common.benchmarks.segmenters import bench_segmenters
 
-        return bench_segmenters(args.data, tune=args.tune, world_model=args.world_model, max_frames=args.frames or 0)
+        return bench_segmenters(
+            args.data,
+            methods=args.methods,
+            tune=args.tune,
+            world_model=args.world_model,
+            max_frames=args.frames or 0,
+            seed=args.seed,
+        )
     from umad_common.benchmarks.pipeline import bench_pipeline
 
     return bench_pipeline(frames=args.frames or 30, hub=args.hub)

@@ -182,7 +182,6 @@ def _eval_graph(args: argparse.Namespace, source: Path) -> dict:
         op.setdefault("params", {})["out"] = str((args.out / "live_metrics.json").resolve())
     if args.sam_checkpoint:
         frame_src = next(op["inputs"]["frame"] for op in by_kind.get("segmenter", []))
-        truth_src = next(op["inputs"]["truth"] for op in by_kind.get("segmenter", []))
         fused_src = next(op["inputs"]["fused"] for op in by_kind.get("mask_refiner", []))
         sam_python = Path(args.sam_python)
         data["operators"] += [
@@ -190,11 +189,10 @@ def _eval_graph(args: argparse.Namespace, source: Path) -> dict:
                 "id": "segment_sam",
                 "kind": "segmenter",
                 "python": str(sam_python.resolve()),
-                "inputs": {"frame": frame_src, "truth": truth_src},
+                "inputs": {"frame": frame_src},
                 "params": {
                     "method": "sam",
-                    "sam_checkpoint": str(args.sam_checkpoint.resolve()),
-                    "sam_model": args.sam_model,
+                    "options": {"checkpoint": str(args.sam_checkpoint.resolve()), "model": args.sam_model},
                 },
             },
             {

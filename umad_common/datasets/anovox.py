@@ -18,6 +18,7 @@ naming the file.
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -291,6 +292,67 @@ def write_pcd(path: Path, cloud: np.ndarray, binary: bool = True) -> None:
     path.write_bytes(header.encode("ascii") + body)
 
 
+def _triplet(value: object, path: Path, what: str) -> list[float]:
+    """A sensor_setup.json location or rotation: [x, y, z], {"x", "y", "z"} or "(x, y, z)"."""
+    if isinstance(value, dict):
+        value = (
+            [value.get(k) for k in ("x", "y", "z")]
+            if "x" in value
+            else [value.get(k) for k in ("pitch", "yaw", "roll")]
+        )
+    elif isinstance(value, str):
+        value = value.strip("()[] ").split(",")
+    try:
+        numbers = [float(v) for v in value]  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        numbers = []
+    if len(numbers) != 3:
+        raise DatasetError(f"{path}: {what} is {value!r}; expected three numbers [x, y, z]")
+    return numbers
+
+
+def read_sensor_setup(path: Path) -> dict | None:
+    """The camera and lidar of a generator-layout `sensor_setup.json`, or None if the file is absent:
+    `{"camera": {"width", "height", "fov", "location", "rotation"}, "lidar": {"location", "rotation"}}`
+    (CARLA axes: x forward, y right, z up, metres; rotations in degrees). The lidar entry is absent
+    when the setup has no lidar."""
+    if not path.is_file():
+        return None
+    try:
+        setup = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{path}: cannot be read as JSON ({exc}); expected the AnoVox sensor setup") from None
+    by_type = (
+        {s.get("sensor_type"): s for s in setup.values() if isinstance(s, dict)} if isinstance(setup, dict) else {}
+    )
+    camera = by_type.get("sensor.camera.rgb")
+    if camera is None:
+        raise DatasetError(f"{path}: no sensor with sensor_type 'sensor.camera.rgb'; expected the AnoVox sensor setup")
+    args = camera.get("args", {})
+    try:
+        intrinsics = {
+            "width": int(args["image_size_x"]),
+            "height": int(args["image_size_y"]),
+            "fov": float(args["fov"]),
+        }
+    except (KeyError, TypeError, ValueError):
+        raise DatasetError(f"{path}: camera args {args!r}; expected image_size_x, image_size_y and fov") from None
+    sensors = {
+        "camera": {
+            **intrinsics,
+            "location": _triplet(camera.get("location"), path, "camera location"),
+            "rotation": _triplet(camera.get("rotation", [0, 0, 0]), path, "camera rotation"),
+        }
+    }
+    lidar = by_type.get("sensor.lidar.ray_cast")
+    if lidar is not None:
+        sensors["lidar"] = {
+            "location": _triplet(lidar.get("location"), path, "lidar location"),
+            "rotation": _triplet(lidar.get("rotation", [0, 0, 0]), path, "lidar rotation"),
+        }
+    return sensors
+
+
 def semantic_to_colour(semantic: np.ndarray) -> np.ndarray:
     """CARLA tags -> RGB palette image; every anomaly tag becomes ANOMALY_COLOUR."""
     lut = np.zeros((256, 3), np.uint8)
@@ -349,6 +411,7 @@ class AnoVoxScenario:
             raise DatasetError(f"{self.folders['rgb']}: no image files named *_<frame>.png")
         self.every = every
         self.frame_ids: list[int] = all_ids[::every]
+        self.sensors = read_sensor_setup(self.path / "sensor_setup.json")  # None in the benchmark layout
 
     def __len__(self) -> int:
         return len(self.frame_ids)

@@ -1,0 +1,298 @@
+"""The `geometry` segmenter: objects from the lidar, cut out of the image where the lidar sees them.
+
+Per frame:
+
+1. project the lidar points into the segmenter's image with the camera's field of view and the
+   camera and lidar mounts (the scenario's sensor_setup.json, which the replayer sends as the lidar
+   message's meta `sensors`; or the options, whose defaults are AnoVox's);
+2. fit the ground plane with RANSAC and drop the points less than `ground_height` above it;
+3. cluster the remaining points with DBSCAN: one cluster per object;
+4. grow each cluster into its image region: the pixels its points hit (closed, holes filled), plus
+   every segment of the `rest` method whose lidar-hit pixels are mostly that cluster's;
+5. the `rest` method's segments, less the objects, cover everything else, so the masks tile the
+   frame: geometry where the lidar sees an object, image segments elsewhere (the combination).
+
+No depth camera, no labels. Camera and lidar axes follow CARLA (x forward, y right, z up, metres);
+AnoVox clouds store (x, -y, z, intensity) in the lidar's frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from scipy import ndimage
+from sklearn.cluster import DBSCAN
+
+from umad_common.operator import Context, Frame
+from umad_common.segmentation.base import TUNED, SegmenterInputError, SegmenterMethod, input_array, masks_to_labels
+
+Triplet = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class SensorRig:
+    """A pinhole camera (principal point at the centre, horizontal field of view `fov` degrees, square
+    pixels) and a lidar, both mounted on the vehicle at `*_location` (CARLA axes, metres)."""
+
+    width: int
+    height: int
+    fov: float
+    camera_location: Triplet
+    lidar_location: Triplet
+
+    @classmethod
+    def from_sensors(cls, sensors: dict, where: str) -> SensorRig:
+        """From the replayer's `sensors` meta (see `umad_common.datasets.anovox.read_sensor_setup`)."""
+        camera, lidar = sensors.get("camera"), sensors.get("lidar")
+        if not camera or not lidar:
+            raise SegmenterInputError(f"{where}: sensor setup {sensors!r} lacks the camera or the lidar")
+        for name, sensor in (("camera", camera), ("lidar", lidar)):
+            if any(abs(float(a)) > 1e-6 for a in sensor.get("rotation", (0, 0, 0))):
+                raise SegmenterInputError(
+                    f"{where}: {name} rotation {sensor['rotation']} is not supported; expected (0, 0, 0) as in AnoVox"
+                )
+        return cls(
+            int(camera["width"]),
+            int(camera["height"]),
+            float(camera["fov"]),
+            tuple(float(v) for v in camera["location"]),
+            tuple(float(v) for v in lidar["location"]),
+        )
+
+    def project(self, points: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel (row, col) in an image of `shape` (h, w) (the camera resized without a crop) and depth
+        along the camera's axis of every (x, -y, z) lidar point; depth <= 0 means behind the camera."""
+        h, w = shape
+        focal = self.width / 2 / np.tan(np.radians(self.fov) / 2)  # px at the camera's own size
+        offset = np.subtract(self.lidar_location, self.camera_location)  # lidar origin seen from the camera
+        forward = points[:, 0] + offset[0]
+        right = -points[:, 1] + offset[1]
+        up = points[:, 2] + offset[2]
+        safe = np.where(forward > 1e-6, forward, np.inf)
+        col = w / 2 + focal * (w / self.width) * right / safe
+        row = h / 2 - focal * (h / self.height) * up / safe
+        return np.floor(row).astype(np.int64), np.floor(col).astype(np.int64), forward
+
+
+def fit_ground(xyz: np.ndarray, iterations: int, tolerance: float, seed: int = 0) -> np.ndarray:
+    """RANSAC plane (a, b, c, d) with a x + b y + c z + d = 0, unit normal pointing up (c > 0), among
+    near-horizontal planes (normal within 30 degrees of vertical), refined by least squares on its
+    inliers. With fewer than 3 points: the plane z = min(z) (or z = 0 without points)."""
+    if len(xyz) < 3:
+        return np.array([0.0, 0.0, 1.0, -(xyz[:, 2].min() if len(xyz) else 0.0)])
+    rng = np.random.default_rng(seed)
+    samples = xyz[rng.integers(0, len(xyz), size=(iterations, 3))]  # (I, 3, 3)
+    normals = np.cross(samples[:, 1] - samples[:, 0], samples[:, 2] - samples[:, 0])
+    norms = np.linalg.norm(normals, axis=1)
+    normals = normals / np.maximum(norms, 1e-9)[:, None] * np.sign(normals[:, 2:3] + 1e-12)
+    offsets = -np.einsum("ij,ij->i", normals, samples[:, 0])
+    valid = (norms > 1e-9) & (normals[:, 2] > np.cos(np.radians(30)))
+    if not valid.any():
+        return np.array([0.0, 0.0, 1.0, -np.percentile(xyz[:, 2], 5)])
+    inliers = np.abs(xyz @ normals[valid].T + offsets[valid]) < tolerance  # (N, I')
+    best = int(inliers.sum(axis=0).argmax())
+    support = xyz[inliers[:, best]]
+    if len(support) >= 3:  # least squares z = p x + q y + r on the inliers
+        design = np.column_stack([support[:, 0], support[:, 1], np.ones(len(support))])
+        p, q, r = np.linalg.lstsq(design, support[:, 2], rcond=None)[0]
+        plane = np.array([-p, -q, 1.0, -r])
+        return plane / np.linalg.norm(plane[:3])
+    return np.append(normals[valid][best], offsets[valid][best])
+
+
+class Geometry(SegmenterMethod):
+    """Lidar objects (ground removed, DBSCAN clusters) grown into image regions, plus the `rest`
+    method's segments elsewhere."""
+
+    name = "geometry"
+    needs = ("lidar",)
+    tuning_grid = {
+        "cluster_eps": [0.7, 1.0],
+        "share": [0.3, 0.5],
+        "ground_height": [0.1, 0.2],
+        "rest": ["felzenszwalb", "slic"],
+    }
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+
+        calibration: Literal["auto", "data", "options"] = Field(
+            "auto",
+            description="data: camera and mounts from the lidar message's meta `sensors` (the scenario's "
+            "sensor_setup.json; a frame without it is refused); options: the fields below; auto: data when the "
+            "frame has it, else the options, with a warning once per run",
+        )
+        image_size: tuple[int, int] = Field(
+            (768, 512), description="calibration options: camera width, height (px) before any resize (AnoVox)"
+        )
+        fov: float = Field(90.0, gt=0, lt=180, description="calibration options: horizontal FOV (deg) (AnoVox)")
+        camera_location: Triplet = Field(
+            (0.0, 0.0, 1.8), description="calibration options: camera mount x, y, z (m, CARLA axes) (AnoVox)"
+        )
+        lidar_location: Triplet = Field(
+            (0.0, 0.0, 1.8), description="calibration options: lidar mount x, y, z (m, CARLA axes) (AnoVox)"
+        )
+        min_range: float = Field(2.5, ge=0, description="ignore points closer than this (m): the ego vehicle")
+        max_range: float = Field(80.0, gt=0, description="ignore points farther than this (m)")
+        ground_tolerance: float = Field(0.1, gt=0, description="RANSAC: inlier distance to the ground plane (m)")
+        ground_iterations: int = Field(64, ge=1, description="RANSAC: candidate planes")
+        ground_height: float = Field(
+            0.1, ge=0, description=f"points less than this above the ground are ground (m); {TUNED}"
+        )
+        cluster_eps: float = Field(0.7, gt=0, description=f"DBSCAN: neighbourhood radius (m); {TUNED}")
+        cluster_min_points: int = Field(4, ge=1, description="DBSCAN: points in a neighbourhood to seed a cluster")
+        share: float = Field(
+            0.5,
+            gt=0,
+            le=1,
+            description=f"a rest segment joins an object when this share of its lidar-hit pixels is it; {TUNED}",
+        )
+        close_px: int = Field(1, ge=0, description="close each object's hit pixels with this radius (px) first")
+        rest: str = Field(
+            "slic",
+            description="the method whose segments cover the rest of the frame and grow the objects (a registered "
+            f"name or `package.module:Class`; its masks are flattened to a tiling); empty: object masks only; {TUNED}",
+        )
+        rest_options: dict[str, Any] = Field(default_factory=dict, description="the rest method's options")
+        no_lidar: Literal["error", "rest"] = Field(
+            "error",
+            description="a frame with no lidar points: error (the frame is refused, naming it), or rest (the rest "
+            "method's segments alone)",
+        )
+
+        @model_validator(mode="after")
+        def _rest_is_an_image_method(self) -> Geometry.Params:
+            rest_class(self.rest, self.rest_options)
+            return self
+
+    def __init__(self, params: BaseModel, context: Context):
+        super().__init__(params, context)
+        p = self.params
+        cls = rest_class(p.rest, p.rest_options)
+        self.rest = cls.from_options(p.rest_options, context) if cls else None
+        self.options_rig = SensorRig(p.image_size[0], p.image_size[1], p.fov, p.camera_location, p.lidar_location)
+        self.assumed_runs: set[str] = set()  # auto calibration: runs already warned about
+
+    @classmethod
+    def required_inputs(cls, params: BaseModel) -> set[str]:
+        rest = rest_class(params.rest, params.rest_options)
+        if rest is None:
+            return set(cls.needs)
+        return set(cls.needs) | rest.required_inputs(rest.Params.model_validate(params.rest_options))
+
+    def __call__(self, image: np.ndarray, frame: Frame) -> np.ndarray:
+        p = self.params
+        shape = image.shape[:2]
+        points = np.asarray(input_array(frame, "lidar", "points", self.name), np.float64)
+        rest = self.rest(image, frame) if self.rest is not None else np.zeros((0, *shape), bool)
+        if len(points) == 0:
+            if p.no_lidar == "error":
+                raise SegmenterInputError(
+                    f"segmenter {frame.frame_id}: method 'geometry' got no lidar points (a drive without lidar?); "
+                    "expected a (N, 4) cloud on input 'lidar', or option no_lidar: rest"
+                )
+            return rest
+        rig = self.rig_of(frame)
+        objects = self.objects(points, rig, shape, rest)
+        rest = rest & ~objects.any(axis=0)
+        return np.concatenate([objects, rest[rest.any(axis=(1, 2))]], axis=0)
+
+    def rig_of(self, frame: Frame) -> SensorRig:
+        """The camera and mounts for this frame, as the `calibration` option says."""
+        p = self.params
+        sensors = frame.inputs["lidar"].meta.get("sensors")
+        if p.calibration == "options" or (p.calibration == "auto" and not sensors):
+            if p.calibration == "auto" and frame.run not in self.assumed_runs:
+                self.assumed_runs.add(frame.run)
+                self.context.log.warning(
+                    "segmenter %s: the lidar carries no sensor setup; geometry projects with the options' camera %s",
+                    frame.frame_id,
+                    self.options_rig,
+                )
+            return self.options_rig
+        if not sensors:
+            raise SegmenterInputError(
+                f"segmenter {frame.frame_id}: method 'geometry' with calibration 'data' needs the lidar message's meta "
+                "`sensors` (the replayer sends the scenario's sensor_setup.json; the benchmark layout has none); "
+                "set option calibration: options or auto (defaults: AnoVox's 768x512, FOV 90, mounts (0, 0, 1.8))"
+            )
+        return SensorRig.from_sensors(sensors, f"segmenter {frame.frame_id}")
+
+    def objects(self, points: np.ndarray, rig: SensorRig, shape: tuple[int, int], rest: np.ndarray) -> np.ndarray:
+        """(K, h, w) bool, one mask per lidar object seen in the image, nearer objects on top."""
+        p = self.params
+        h, w = shape
+        rows, cols, depth = rig.project(points[:, :3], shape)
+        distance = np.hypot(points[:, 0], points[:, 1])
+        seen = (depth > 0) & (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+        seen &= (distance >= p.min_range) & (distance <= p.max_range)
+        xyz = points[seen, :3] * (1.0, -1.0, 1.0)  # CARLA axes, lidar frame
+        rows, cols, depth = rows[seen], cols[seen], depth[seen]
+        plane = fit_ground(xyz, p.ground_iterations, p.ground_tolerance)
+        above = xyz @ plane[:3] + plane[3] >= p.ground_height
+        labels = np.full(len(xyz), -2, np.int64)  # -2 ground, -1 unclustered, >= 0 object
+        if above.sum() >= p.cluster_min_points:
+            labels[above] = DBSCAN(eps=p.cluster_eps, min_samples=p.cluster_min_points).fit_predict(xyz[above])
+        else:
+            labels[above] = -1
+        count = int(labels.max()) + 1
+        if count == 0:
+            return np.zeros((0, h, w), bool)
+        hit = np.full(shape, -3, np.int64)  # the nearest point's label per pixel; -3 no point
+        order = np.lexsort((depth, rows * w + cols))
+        pixel = rows[order] * w + cols[order]
+        first = np.r_[True, pixel[1:] != pixel[:-1]]
+        hit.reshape(-1)[pixel[first]] = labels[order][first]
+        owner = np.full(shape, -1, np.int64)
+        rest_labels = masks_to_labels(rest) if len(rest) else np.full(shape, -1, np.int64)
+        joined = self._segments_joining(hit, rest_labels, count)
+        structure = ndimage.generate_binary_structure(2, 1)
+        median_depth = [np.median(depth[labels == k]) for k in range(count)]
+        for k in np.argsort(median_depth)[::-1]:  # far first: nearer objects overwrite
+            region = hit == k
+            if p.close_px:
+                region = ndimage.binary_closing(region, structure, iterations=p.close_px, border_value=0)
+            region = ndimage.binary_fill_holes(region) | np.isin(rest_labels, np.flatnonzero(joined == k))
+            owner[region] = k
+        ids, sizes = np.unique(owner[owner >= 0], return_counts=True)
+        ids = ids[np.argsort(-sizes, kind="stable")]
+        return owner[None] == ids[:, None, None]
+
+    def _segments_joining(self, hit: np.ndarray, rest_labels: np.ndarray, count: int) -> np.ndarray:
+        """Per rest segment, the object it joins (-1 none): the one holding at least `share` of the
+        segment's lidar-hit pixels (ground and unclustered hits count against it)."""
+        segments = int(rest_labels.max()) + 1
+        if segments == 0:
+            return np.zeros(0, np.int64)
+        valid = (hit > -3) & (rest_labels >= 0)
+        hits_per_segment = np.bincount(rest_labels[valid], minlength=segments)
+        on_object = valid & (hit >= 0)
+        votes = np.zeros((segments, count), np.int64)
+        np.add.at(votes, (rest_labels[on_object], hit[on_object]), 1)
+        best = votes.argmax(axis=1)
+        enough = votes[np.arange(segments), best] >= self.params.share * np.maximum(hits_per_segment, 1)
+        return np.where(enough & (hits_per_segment > 0), best, -1)
+
+
+def rest_class(name: str, options: dict[str, Any]) -> type[SegmenterMethod] | None:
+    """The method that covers the rest of the frame (None for an empty name), its options checked;
+    not geometry itself."""
+    if not name:
+        return None
+    from umad_common.segmentation import UnknownSegmenterError, segmenter_class
+
+    try:
+        cls = segmenter_class(name)
+    except UnknownSegmenterError as exc:
+        raise ValueError(f"rest: {exc}") from None
+    if issubclass(cls, Geometry):
+        raise ValueError(f"rest method {name!r} would nest geometry; use an image method")
+    try:
+        cls.Params.model_validate(options)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise ValueError(f"rest_options for {name!r}: {problems}") from None
+    return cls
