@@ -13,8 +13,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from replay.log_source import recorded_frame, recorded_frames
 from umad_common.datasets.anovox import AnoVoxFrame, AnoVoxScenario, DatasetError, find_scenarios
+from umad_common.log_source import recorded_frame, recorded_frames
 from umad_common.operator import Context, Output, Source, SourceFrame
 
 ROUTE_SHAPE = (192, 192)

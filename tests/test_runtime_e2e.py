@@ -15,9 +15,9 @@ import pytest
 import yaml
 import zenoh
 
-from replay.log import LogError, read_log
 from tests.conftest import DrainedUmad, run_umad, start_umad
 from umad_common.bus import open_client
+from umad_common.mcap_log import LogError, read_log
 from umad_common.messages import decode
 
 pytestmark = pytest.mark.slow

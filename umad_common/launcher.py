@@ -23,9 +23,9 @@ from pathlib import Path
 
 import zenoh
 
-from replay.log import McapRecorder
 from umad_common.bus import Keys, cleanup_stale_shm, open_client
 from umad_common.graph import Graph, GraphError, OperatorSpec, load_graph
+from umad_common.mcap_log import McapRecorder
 from umad_common.runtime import EXIT_CONFIG
 
 log = logging.getLogger("umad.launch")

@@ -35,10 +35,10 @@ import msgpack
 import zenoh
 from pydantic import ValidationError
 
-from replay.log import LogError
 from umad_common.bus import Keys, ShutdownSignal, close_session, open_client
 from umad_common.delivery import FrameJoiner, Membership, OutputCache, Stats
 from umad_common.graph import Graph, GraphError, load_graph, merge_params, parse_assignment
+from umad_common.mcap_log import LogError
 from umad_common.messages import Message, MessageError, decode, encode
 from umad_common.operator import Context, Frame, Operator, Output, Source
 from umad_common.source_driver import SourceDriver
@@ -82,7 +82,7 @@ class OperatorRuntime:
         self.log = logging.getLogger(f"umad.{op_id}")
         context = Context(op_id, replica, graph.name, graph.base_dir, self.log)
         if replay_log and issubclass(self.cls, Source):
-            from replay.log_source import LoggedSource
+            from umad_common.log_source import LoggedSource
 
             params = self.cls.validate_params(self.spec.params)
             self.operator: Operator = LoggedSource(replay_log, self.cls, params, context, allow_truncated)
