@@ -11,20 +11,19 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from umad_common.operator import Input, Operator, Output, Source, SourceFrame
+from umad_common.pacing import SourceParams
 
 
 class CounterSource(Source):
     kind = "toy_counter"
     outputs = ("value",)
 
-    class Params(BaseModel):
-        model_config = ConfigDict(extra="forbid")
+    class Params(SourceParams):
         runs: int = 1
         frames: int = 20
         size: int = 4  # float32 elements per frame
         window: int = 4
         ack_timeout_s: float = 3.0
-        pacing: str = "lossless"
 
     def frames(self):
         for r in range(self.params.runs):

@@ -27,6 +27,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from umad_common.bus import DEFAULT_HUB, TlsConfig
 from umad_common.operator import Operator, Source, UnknownOperatorError, load_operator_class
+from umad_common.pacing import SourceParams
+
+DEFAULT_GRAPH = Path(__file__).resolve().parents[1] / "graph.yaml"  # the built-in graph, beside the package
 
 
 class GraphError(ValueError):
@@ -157,6 +160,15 @@ def merge_params(target: dict[str, Any], updates: dict[str, Any]) -> None:
         node[leaf] = value
 
 
+def parse_sets(sets: list[str]) -> dict[str, dict[str, Any]]:
+    """`["fusion.weights.ssim=0.5", ...]` -> `{"fusion": {"weights.ssim": 0.5}}` (the one `--set` parser)."""
+    overrides: dict[str, dict[str, Any]] = {}
+    for text in sets:
+        op, param, value = parse_assignment(text)
+        overrides.setdefault(op, {})[param] = value
+    return overrides
+
+
 def parse_assignment(text: str) -> tuple[str, str, Any]:
     """`OP.PARAM=VALUE` (PARAM may be dotted, VALUE is YAML) -> (op, param, value)."""
     key, sep, raw = text.partition("=")
@@ -172,13 +184,30 @@ def load_graph(path: str | Path) -> Graph:
     path = Path(path)
     if str(path.resolve().parent) not in sys.path:
         sys.path.append(str(path.resolve().parent))
+    return validate_graph(_read_yaml(path), path)
+
+
+def graph_address(path: str | Path) -> tuple[str, str, TlsConfig | None]:
+    """A graph file's name, hub and TLS settings, read without importing its operators: what a
+    command needs to reach the graph when it runs."""
+    path = Path(path)
+    data = _read_yaml(path)
+    if not isinstance(data, dict):
+        raise GraphError([f"{path}: expected a mapping with `operators:`, got {type(data).__name__}"])
     try:
-        data = yaml.safe_load(path.read_text())
+        spec = GraphSpec.model_validate(data)
+    except ValidationError as exc:
+        raise GraphError([f"{path}: {_describe(err, data)}" for err in exc.errors()]) from None
+    return spec.name, spec.hub, Graph(spec, {}, path).tls_config()
+
+
+def _read_yaml(path: Path) -> Any:
+    try:
+        return yaml.safe_load(path.read_text())
     except FileNotFoundError:
         raise GraphError([f"{path}: graph file not found"]) from None
     except yaml.YAMLError as exc:
         raise GraphError([f"{path}: not valid YAML ({exc})"]) from None
-    return validate_graph(data, path)
 
 
 def validate_graph(data: Any, path: Path | None = None) -> Graph:
@@ -218,6 +247,10 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
             for err in exc.errors():
                 loc = ".".join(str(x) for x in err["loc"]) or "params"
                 problems.append(f"operator {op.id!r}: parameter {loc!r}: {err['msg']}")
+        if issubclass(cls, Source) and not issubclass(cls.Params, SourceParams):
+            problems.append(
+                f"operator {op.id!r}: a source's Params must extend umad_common.pacing.SourceParams (its pacing)"
+            )
         if cls.ordered and op.replicas > 1:
             problems.append(f"operator {op.id!r}: kind {cls.kind!r} processes frames in order and cannot have replicas")
         ports = {p.name: p for p in cls.inputs}
