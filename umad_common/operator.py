@@ -19,7 +19,6 @@ parameters and call `process(frame)` in a unit test, no Zenoh needed.
 
 from __future__ import annotations
 
-import importlib
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -31,6 +30,7 @@ from pydantic import BaseModel, ConfigDict
 
 from umad_common.messages import Message
 from umad_common.pacing import SourceParams
+from umad_common.plugins import load_class
 
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # holds umad_common/ (and operators/, replay/)
 
@@ -205,14 +205,4 @@ def load_operator_class(kind: str | None = None, uses: str | None = None) -> typ
         raise UnknownOperatorError(
             f"unknown operator kind {kind!r}; expected one of {sorted(BUILTIN_KINDS)} or `uses: pkg.module:Class`"
         )
-    module_name, _, attr = target.partition(":")
-    if not attr:
-        raise UnknownOperatorError(f"import path {target!r} must look like `package.module:ClassName`")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise UnknownOperatorError(f"cannot import module {module_name!r} for operator {target!r}: {exc}") from None
-    cls = getattr(module, attr, None)
-    if not (isinstance(cls, type) and issubclass(cls, Operator)):
-        raise UnknownOperatorError(f"{target!r} is not an Operator subclass")
-    return cls
+    return load_class(target, Operator, UnknownOperatorError, "operator")

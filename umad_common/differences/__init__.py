@@ -11,8 +11,6 @@ where `MyDifference` subclasses `DifferenceMetric`.
 
 from __future__ import annotations
 
-import importlib
-
 from umad_common.differences.metrics import (
     AbsDifference,
     DifferenceInputError,
@@ -32,6 +30,7 @@ from umad_common.differences.normalization import (
     minmax,
 )
 from umad_common.differences.perceptual import PerceptualDifference
+from umad_common.plugins import load_class
 
 METRICS: dict[str, type[DifferenceMetric]] = {
     cls.name: cls for cls in (AbsDifference, MseDifference, SsimDifference, PerceptualDifference, TemporalDifference)
@@ -46,19 +45,11 @@ def metric_class(name: str) -> type[DifferenceMetric]:
     """The class for a registered name or a `package.module:ClassName` import path."""
     if name in METRICS:
         return METRICS[name]
-    module_name, _, attr = name.partition(":")
-    if not attr:
+    if ":" not in name:
         raise UnknownMetricError(
             f"unknown metric {name!r}; expected one of {sorted(METRICS)} or `package.module:ClassName`"
         )
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise UnknownMetricError(f"cannot import module {module_name!r} for metric {name!r}: {exc}") from None
-    cls = getattr(module, attr, None)
-    if not (isinstance(cls, type) and issubclass(cls, DifferenceMetric)):
-        raise UnknownMetricError(f"metric {name!r}: expected a DifferenceMetric subclass, got {cls!r}")
-    return cls
+    return load_class(name, DifferenceMetric, UnknownMetricError, "metric")
 
 
 def build_metric(name: str, options: MetricOptions | None = None) -> DifferenceMetric:
