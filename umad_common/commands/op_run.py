@@ -27,4 +27,4 @@ def run(args) -> int:
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return 1
-    return run_operator(graph, args.id, args.replica, args.connect)
+    run_operator(graph, args.id, args.replica, args.connect)  # ends the process
