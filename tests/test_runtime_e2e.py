@@ -154,14 +154,18 @@ def test_bad_control_commands_are_rejected_and_the_operator_goes_on(tmp_path, hu
         refused = run_umad("set", "triple.factor=big", "--connect", hub_endpoint)
         assert refused.returncode == 1, refused.stdout + refused.stderr
         assert "triple.r0: refused: factor: Input should be a valid number" in refused.stderr
+        declined = run_umad("set", "triple.factor=0", "--connect", hub_endpoint)
+        assert (
+            declined.returncode == 1 and "triple.r0: refused: ValueError: a factor of 0 is refused" in declined.stderr
+        )
         unknown = run_umad("set", "nope.factor=2", "--connect", hub_endpoint)
         assert unknown.returncode == 1 and "nope: no such operator in the running graph 'toy'" in unknown.stderr
         stopped = run_umad("op", "stop", "no_such_op", "--connect", hub_endpoint)
         assert stopped.returncode == 1 and "no_such_op: refused: no_such_op is not running" in stopped.stderr
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and stats["umad/toy/_stats/triple/r0"]["errors"] < len(bad) + 1:
+        while time.monotonic() < deadline and stats["umad/toy/_stats/triple/r0"]["errors"] < len(bad) + 2:
             time.sleep(0.1)
-        assert stats["umad/toy/_stats/triple/r0"]["errors"] == len(bad) + 1  # the refused `umad set` too
+        assert stats["umad/toy/_stats/triple/r0"]["errors"] == len(bad) + 2  # the two refused `umad set` too
         assert stats["umad/toy/_stats/triple/r0"]["param_changes"] == 0
         sub.undeclare()
     finally:

@@ -43,6 +43,12 @@ class Scale(Operator):
         delay_s: float = 0.0
         fail_on_seq: int = -1
 
+    def update_params(self, params):
+        """Refuses a change the schema accepts, as an operator whose new weight file does not load."""
+        if params.factor == 0:
+            raise ValueError("a factor of 0 is refused")
+        super().update_params(params)
+
     def process(self, frame):
         if frame.seq == self.params.fail_on_seq:
             raise RuntimeError("asked to fail")
