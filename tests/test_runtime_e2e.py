@@ -347,7 +347,7 @@ def test_hub_restart_is_survived_by_reconnecting_clients(tmp_path, hub_endpoint)
 
 
 def test_hot_swap_start_stop_and_set_take_effect_on_later_frames(tmp_path, hub_endpoint):
-    graph = toy_graph(tmp_path, hub_endpoint, frames=400, delay=0.02, replicas=1)
+    graph = toy_graph(tmp_path, hub_endpoint, frames=2000, delay=0.02, replicas=1)  # stopped with SIGINT below
     data = yaml.safe_load(graph.read_text())
     data["operators"][0]["params"]["runs"] = 1
     graph.write_text(yaml.safe_dump(data, sort_keys=False))
