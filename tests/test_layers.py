@@ -4,9 +4,13 @@ CLI in commands/) imports neither, and the benchmarks the CLI runs do not import
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
+
+from tests.conftest import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -56,3 +60,17 @@ def offending(folder: str, forbidden: tuple[str, ...], skip: tuple[str, ...] = (
 )
 def test_imports_point_one_way(folder, forbidden, skip):
     assert offending(folder, forbidden, skip) == {}
+
+
+def test_a_command_to_a_running_graph_imports_no_operator():
+    """`umad set` / `umad op` start fast on a busy machine: they never import an operator, and with
+    it torch or scikit-learn (that import took 25-50 s on 2 loaded cores)."""
+    probe = (
+        "import sys; from umad_common.cli import main; "
+        f"code = main(['set', 'fusion.weights.abs=0.3', '--connect', 'tcp/127.0.0.1:{free_port()}']); "
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'sklearn', 'skimage', 'operators')); "
+        "print(code, heavy)"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert out.stdout.strip() == "1 []", out.stdout + out.stderr
+    assert "no hub at tcp/127.0.0.1:" in out.stderr
