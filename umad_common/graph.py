@@ -25,19 +25,10 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from umad_common.assignments import GraphError, merge_params
 from umad_common.bus import DEFAULT_HUB, TlsConfig
 from umad_common.operator import Operator, Source, UnknownOperatorError, load_operator_class
 from umad_common.pacing import SourceParams
-
-DEFAULT_GRAPH = Path(__file__).resolve().parents[1] / "graph.yaml"  # the built-in graph, beside the package
-
-
-class GraphError(ValueError):
-    """graph.yaml is invalid; `problems` lists every culprit found."""
-
-    def __init__(self, problems: list[str]):
-        self.problems = problems
-        super().__init__("invalid graph:\n  - " + "\n  - ".join(problems))
 
 
 class TlsSpec(BaseModel):
@@ -146,36 +137,6 @@ class Graph:
                 raise GraphError([f"--set names operator {op_id!r}, which is not in the graph"])
             merge_params(matches[0]["params"], params)
         return validate_graph(data, self.path)
-
-
-def merge_params(target: dict[str, Any], updates: dict[str, Any]) -> None:
-    """Merge `{"weights.ssim": 0.5}`-style dotted keys into a nested params dict."""
-    for dotted, value in updates.items():
-        node = target
-        *parents, leaf = dotted.split(".")
-        for part in parents:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise GraphError([f"parameter {dotted!r}: {part!r} is not a mapping"])
-        node[leaf] = value
-
-
-def parse_sets(sets: list[str]) -> dict[str, dict[str, Any]]:
-    """`["fusion.weights.ssim=0.5", ...]` -> `{"fusion": {"weights.ssim": 0.5}}` (the one `--set` parser)."""
-    overrides: dict[str, dict[str, Any]] = {}
-    for text in sets:
-        op, param, value = parse_assignment(text)
-        overrides.setdefault(op, {})[param] = value
-    return overrides
-
-
-def parse_assignment(text: str) -> tuple[str, str, Any]:
-    """`OP.PARAM=VALUE` (PARAM may be dotted, VALUE is YAML) -> (op, param, value)."""
-    key, sep, raw = text.partition("=")
-    op, dot, param = key.partition(".")
-    if not sep or not dot or not op or not param:
-        raise GraphError([f"{text!r}: expected OP.PARAM=VALUE, e.g. fusion.weights.ssim=0.5"])
-    return op, param, yaml.safe_load(raw)
 
 
 def load_graph(path: str | Path) -> Graph:

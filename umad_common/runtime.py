@@ -40,9 +40,10 @@ import msgpack
 import zenoh
 from pydantic import ValidationError
 
+from umad_common.assignments import GraphError, merge_params, parse_sets
 from umad_common.bus import Keys, ShutdownSignal, answer, close_session, open_client
 from umad_common.delivery import FrameJoiner, Membership, OutputCache, Stats
-from umad_common.graph import Graph, GraphError, load_graph, merge_params, parse_sets
+from umad_common.graph import Graph, load_graph
 from umad_common.mcap_log import LogError
 from umad_common.messages import Message, MessageError, decode, encode
 from umad_common.operator import Context, Frame, Operator, Output, Source

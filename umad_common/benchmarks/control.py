@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from umad_common.graph import DEFAULT_GRAPH, load_graph
+from umad_common import DEFAULT_GRAPH
+from umad_common.graph import load_graph
 
 READY_TIMEOUT_S = 300.0  # the default graph's operators load their models on a busy machine
 QUERY_TIMEOUT_S = 30.0

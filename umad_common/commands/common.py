@@ -11,17 +11,13 @@ import argparse
 import json
 import sys
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from umad_common.graph import (
-    DEFAULT_GRAPH,
-    Graph,
-    GraphError,
-    graph_address,
-    load_graph,
-    missing_local_files,
-    parse_sets,
-)
+from umad_common import DEFAULT_GRAPH
+from umad_common.assignments import GraphError, parse_sets
+
+if TYPE_CHECKING:
+    from umad_common.graph import Graph
 
 CONNECT_TIMEOUT_S = 10.0  # how long a command waits for the hub's answer once connected
 ANSWER_TIMEOUT_S = 30.0  # a replica answers between two frames; only a hung one takes this long
@@ -39,6 +35,8 @@ def add_graph_argument(parser: argparse.ArgumentParser, positional: bool = False
 def load_graph_or_exit(path: str, sets: list[str] | None = None, local: bool = False) -> Graph | None:
     """The validated graph with `--set` overrides applied, or None after printing every problem.
     `local`: the whole graph runs here, so also check the interpreters and TLS files it names."""
+    from umad_common.graph import load_graph, missing_local_files
+
     try:
         graph = load_graph(path)
         overrides = parse_sets(sets or [])
@@ -86,7 +84,11 @@ def connect_to_running_graph(graph_file: str | None, connect: str | None) -> Run
     or None after saying why not: no hub there, no graph on it, or several and none named."""
     from umad_common.bus import DEFAULT_HUB, Keys, open_client
 
-    name, hub, tls = graph_address(graph_file) if graph_file else (None, DEFAULT_HUB, None)
+    name, hub, tls = None, DEFAULT_HUB, None
+    if graph_file:
+        from umad_common.graph import graph_address  # reads the file; imports no operator
+
+        name, hub, tls = graph_address(graph_file)
     hub = connect or hub
     session = open_client(hub, tls, timeout_s=CONNECT_TIMEOUT_S, retry=False)
     if session is None:

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import sys
 
+from umad_common.assignments import GraphError, parse_sets
 from umad_common.commands.common import (
     ANSWER_TIMEOUT_S,
     add_running_graph_arguments,
     connect_to_running_graph,
     report,
 )
-from umad_common.graph import GraphError, parse_sets
 
 
 def add_arguments(parser):
