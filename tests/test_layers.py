@@ -64,11 +64,11 @@ def test_imports_point_one_way(folder, forbidden, skip):
 
 def test_a_command_to_a_running_graph_imports_no_operator():
     """`umad set` / `umad op` start fast on a busy machine: they never import an operator, and with
-    it torch or scikit-learn (that import took 25-50 s on 2 loaded cores)."""
+    it torch or scikit-learn (that import took 25-50 s on 2 loaded cores), nor even numpy."""
     probe = (
         "import sys; from umad_common.cli import main; "
         f"code = main(['set', 'fusion.weights.abs=0.3', '--connect', 'tcp/127.0.0.1:{free_port()}']); "
-        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'sklearn', 'skimage', 'operators')); "
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'sklearn', 'skimage', 'operators', 'numpy')); "
         "print(code, heavy)"
     )
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, timeout=120)
