@@ -8,7 +8,6 @@ that the replicas or the launcher answer once they applied or refused it.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -82,7 +81,7 @@ class RunningGraph:
 def connect_to_running_graph(graph_file: str | None, connect: str | None) -> RunningGraph | None:
     """The graph running on the hub (`connect`, else the graph file's hub, else the default one),
     or None after saying why not: no hub there, no graph on it, or several and none named."""
-    from umad_common.bus import DEFAULT_HUB, Keys, open_client
+    from umad_common.bus import DEFAULT_HUB, Keys, ask, open_client
 
     name, hub, tls = None, DEFAULT_HUB, None
     if graph_file:
@@ -94,11 +93,7 @@ def connect_to_running_graph(graph_file: str | None, connect: str | None) -> Run
     if session is None:
         print(f"no hub at {hub}: is the graph running (`umad launch`)?", file=sys.stderr)
         return None
-    graphs = {}
-    for reply in session.get(Keys.ALL_GRAPHS, timeout=CONNECT_TIMEOUT_S):
-        if reply.ok is not None:
-            info = json.loads(reply.ok.payload.to_bytes())
-            graphs[info["name"]] = info
+    graphs = {info["name"]: info for info in ask(session, Keys.ALL_GRAPHS, {}, CONNECT_TIMEOUT_S)}
     chosen = graphs.get(name) if name else (next(iter(graphs.values())) if len(graphs) == 1 else None)
     if chosen is None:
         session.close()
