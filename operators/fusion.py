@@ -9,29 +9,22 @@ The arithmetic (and the rule for absent metrics) is `umad_common.refine.fuse`.
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
 from umad_common.messages import Message
 from umad_common.operator import Frame, Input, Operator, Output
+from umad_common.pacing import JoinParams
 from umad_common.refine import fuse, used_weights
 
 DEFAULT_WEIGHTS = {"abs": 0.2, "mse": 0.2, "ssim": 0.2, "perceptual": 0.2, "temporal": 0.2}  # difference `metric` names
 
 
-class FusionParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class FusionParams(JoinParams):
     weights: dict[str, float] = Field(
         default_factory=lambda: dict(DEFAULT_WEIGHTS),
         description="weight in [0, 1] per metric name (a difference map's meta 'metric', else its producer id); "
         "maps of metrics without a weight, or with weight 0, are not fused; the fused map is the weighted "
         "mean over the metrics present in the frame",
-    )
-    deadline_ms: float = Field(
-        default=500.0,
-        gt=0,
-        description="live mode: how long after a frame's first map to wait for the other expected maps before "
-        "fusing those that arrived (the output is then marked partial); lossless mode always waits",
     )
 
     @field_validator("weights")

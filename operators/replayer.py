@@ -2,20 +2,20 @@
 
 One run per scenario folder (run = folder name), seq 0, 1, 2, ... over the sampled frames, stamps at
 the recording's 10 Hz (frame index x 100 ms, so sampling keeps real time). Pacing (`lossless` with a
-window of unacked frames, or `realtime`) is done by the runtime from the parameters declared here.
+window of unacked frames, or `realtime`) is done by the runtime from the `SourceParams` fields.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, Field
 
-from replay.log_source import recorded_frame, recorded_frames
 from umad_common.datasets.anovox import AnoVoxFrame, AnoVoxScenario, DatasetError, find_scenarios
+from umad_common.log_source import recorded_frame, recorded_frames
 from umad_common.operator import Context, Output, Source, SourceFrame
+from umad_common.pacing import SourceParams
 
 ROUTE_SHAPE = (192, 192)
 RECORDING_PERIOD_NS = 100_000_000  # AnoVox and the synthetic world record at 10 Hz
@@ -25,9 +25,7 @@ class Replayer(Source):
     kind = "replayer"
     outputs = ("camera", "lidar", "ego", "route", "truth")
 
-    class Params(BaseModel):
-        model_config = ConfigDict(extra="forbid")
-
+    class Params(SourceParams):
         source: str = Field(
             "data/synthetic/anomalous",
             description="a Scenario_* folder, a folder searched recursively for them, or an MCAP log of an earlier run",
@@ -42,14 +40,6 @@ class Replayer(Source):
         scenarios: list[str] | None = Field(None, description="keep only scenarios with these folder names (None: all)")
         max_frames: int | None = Field(
             None, ge=1, description="at most this many frames per run after sampling (None: all)"
-        )
-        pacing: Literal["lossless", "realtime"] = Field(
-            "lossless", description="lossless: advance on acks from the sinks; realtime: publish at rate_hz"
-        )
-        window: int = Field(8, ge=1, description="lossless pacing: frames in flight before waiting for acks")
-        rate_hz: float = Field(10.0, gt=0, description="realtime pacing: frames published per second")
-        ack_timeout_s: float = Field(
-            15.0, gt=0, description="lossless pacing: re-send a frame not acked within this time"
         )
 
     def __init__(self, params: BaseModel | dict | None = None, context: Context | None = None):

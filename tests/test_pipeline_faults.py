@@ -70,7 +70,8 @@ def test_killed_worker_and_world_model_leave_the_metrics_exactly_as_without_faul
     from umad_common.datasets.synthetic.generator import generate_benchmark
 
     generate_benchmark(tmp_path / "data", 0, 1, FRAMES, 7, (192, 128))
-    run_graph(pipeline_graph(tmp_path, tmp_path / "data", "clean"), {})
+    clean_out, _ = run_graph(pipeline_graph(tmp_path, tmp_path / "data", "clean"), {})
+    assert "did not stop after SIGTERM" not in clean_out  # every operator stopped within its grace period
     out, killed = run_graph(pipeline_graph(tmp_path, tmp_path / "data", "faulty"), {"diff_ssim": 4, "world_model": 8})
 
     assert killed == {"diff_ssim", "world_model"}

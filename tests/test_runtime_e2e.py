@@ -15,9 +15,9 @@ import pytest
 import yaml
 import zenoh
 
-from replay.log import LogError, read_log
 from tests.conftest import DrainedUmad, run_umad, start_umad
 from umad_common.bus import open_client
+from umad_common.mcap_log import LogError, read_log
 from umad_common.messages import decode
 
 pytestmark = pytest.mark.slow
@@ -141,7 +141,8 @@ def test_malformed_payloads_are_counted_and_the_operator_goes_on(tmp_path, hub_e
 
 
 def test_bad_control_commands_are_rejected_and_the_operator_goes_on(tmp_path, hub_endpoint):
-    graph = toy_graph(tmp_path, hub_endpoint, frames=40, delay=0.05, replicas=1)
+    frames = 300  # long enough for three commands on a busy machine
+    graph = toy_graph(tmp_path, hub_endpoint, frames=frames, delay=0.05, replicas=1)
     proc = start_umad("launch", str(graph))
     session = open_client(hub_endpoint)
     try:
@@ -149,20 +150,30 @@ def test_bad_control_commands_are_rejected_and_the_operator_goes_on(tmp_path, hu
         bad = (b"not json", b"[1]", b'{"set": 5}', b'{"set": {"factor": "big"}}', b'{"set": {"nope": 1}}')
         for payload in bad:
             session.put("umad/toy/_ctl/triple", payload)
+        # Commands find the graph on the hub (no --graph) and hear back what each replica did.
+        refused = run_umad("set", "triple.factor=big", "--connect", hub_endpoint)
+        assert refused.returncode == 1, refused.stdout + refused.stderr
+        assert "triple.r0: refused: factor: Input should be a valid number" in refused.stderr
+        declined = run_umad("set", "triple.factor=0", "--connect", hub_endpoint)
+        assert (
+            declined.returncode == 1 and "triple.r0: refused: ValueError: a factor of 0 is refused" in declined.stderr
+        )
+        unknown = run_umad("set", "nope.factor=2", "--connect", hub_endpoint)
+        assert unknown.returncode == 1 and "nope: no such operator in the running graph 'toy'" in unknown.stderr
+        stopped = run_umad("op", "stop", "no_such_op", "--connect", hub_endpoint)
+        assert stopped.returncode == 1 and "no_such_op: refused: no_such_op is not running" in stopped.stderr
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and stats["umad/toy/_stats/triple/r0"]["errors"] < len(bad):
+        while time.monotonic() < deadline and stats["umad/toy/_stats/triple/r0"]["errors"] < len(bad) + 2:
             time.sleep(0.1)
-        assert stats["umad/toy/_stats/triple/r0"]["errors"] == len(bad)
+        assert stats["umad/toy/_stats/triple/r0"]["errors"] == len(bad) + 2  # the two refused `umad set` too
         assert stats["umad/toy/_stats/triple/r0"]["param_changes"] == 0
-        stopped = run_umad("op", "stop", "no_such_op", "--graph", str(graph))
-        assert stopped.returncode == 1 and "no_such_op: not running" in stopped.stderr
         sub.undeclare()
     finally:
         session.close()
-    out, _ = proc.communicate(timeout=120)
+    out, _ = proc.communicate(timeout=180)
     assert proc.returncode == 0, out
-    assert out.count("rejected parameter change") == len(bad)
-    assert_exactly_once(tmp_path, 40)  # the old parameters stayed: every total is still x6
+    assert out.count("rejected parameter change") == len(bad) + 1
+    assert_exactly_once(tmp_path, frames)  # the old parameters stayed: every total is still x6
 
 
 def test_set_without_a_running_graph_says_so(tmp_path, hub_endpoint):
@@ -336,7 +347,7 @@ def test_hub_restart_is_survived_by_reconnecting_clients(tmp_path, hub_endpoint)
 
 
 def test_hot_swap_start_stop_and_set_take_effect_on_later_frames(tmp_path, hub_endpoint):
-    graph = toy_graph(tmp_path, hub_endpoint, frames=400, delay=0.02, replicas=1)
+    graph = toy_graph(tmp_path, hub_endpoint, frames=2000, delay=0.02, replicas=1)  # stopped with SIGINT below
     data = yaml.safe_load(graph.read_text())
     data["operators"][0]["params"]["runs"] = 1
     graph.write_text(yaml.safe_dump(data, sort_keys=False))
@@ -357,9 +368,11 @@ def test_hot_swap_start_stop_and_set_take_effect_on_later_frames(tmp_path, hub_e
     graph.write_text(yaml.safe_dump(data, sort_keys=False))
     assert run_umad("op", "start", "quadruple", "--graph", str(graph)).returncode == 0
     wait_for(lambda lines: any("quadruple" in x.get("producers", []) for x in lines), "quadruple to join")
-    assert run_umad("set", "double.factor=5", "--graph", str(graph)).returncode == 0
+    changed = run_umad("set", "double.factor=5", "--connect", hub_endpoint)
+    assert changed.returncode == 0 and "double.r0: applied: {'factor': 5}" in changed.stdout, changed.stderr
     wait_for(lambda lines: any(x.get("total") == x["seq"] * 13 and x["seq"] for x in lines if "seq" in x), "factor 5")
-    assert run_umad("op", "stop", "quadruple", "--graph", str(graph)).returncode == 0
+    stopped = run_umad("op", "stop", "quadruple", "--connect", hub_endpoint)
+    assert stopped.returncode == 0 and "quadruple: applied: stopping quadruple (1 replicas)" in stopped.stdout
     n_before_stop = len(sink_lines(tmp_path))
     wait_for(
         lambda lines: len(lines) > n_before_stop + 20 and lines[-1]["producers"] == ["double", "triple"],

@@ -11,20 +11,19 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from umad_common.operator import Input, Operator, Output, Source, SourceFrame
+from umad_common.pacing import SourceParams
 
 
 class CounterSource(Source):
     kind = "toy_counter"
     outputs = ("value",)
 
-    class Params(BaseModel):
-        model_config = ConfigDict(extra="forbid")
+    class Params(SourceParams):
         runs: int = 1
         frames: int = 20
         size: int = 4  # float32 elements per frame
         window: int = 4
         ack_timeout_s: float = 3.0
-        pacing: str = "lossless"
 
     def frames(self):
         for r in range(self.params.runs):
@@ -43,6 +42,12 @@ class Scale(Operator):
         factor: float = 2.0
         delay_s: float = 0.0
         fail_on_seq: int = -1
+
+    def update_params(self, params):
+        """Refuses a change the schema accepts, as an operator whose new weight file does not load."""
+        if params.factor == 0:
+            raise ValueError("a factor of 0 is refused")
+        super().update_params(params)
 
     def process(self, frame):
         if frame.seq == self.params.fail_on_seq:

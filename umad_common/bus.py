@@ -2,6 +2,10 @@
 
 Topology: the launcher opens a router-mode session (the hub); every operator opens a client session
 to it with multicast scouting off, so a worker on another host only needs the hub's endpoint.
+
+Commands (`umad set`, `umad op`) are Zenoh queries: every replica or the launcher that receives one
+answers with what it did, so a command always hears back. They travel at a higher priority than
+the frames, so a hub queue full of frames does not hold them up.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ from pathlib import Path
 import zenoh
 
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
+CONTROL_PRIORITY = zenoh.Priority.INTERACTIVE_HIGH  # commands and their answers overtake queued frames
 SHM_DIR = Path("/dev/shm")
 log = logging.getLogger("umad.bus")
 
@@ -37,8 +42,10 @@ def zenoh_config(
     connect: list[str] | None = None,
     tls: TlsConfig | None = None,
     shared_memory: bool = True,
+    retry: bool = True,
 ) -> zenoh.Config:
-    """The one place every Zenoh config is built."""
+    """The one place every Zenoh config is built. `retry=False`: a client that finds no hub fails
+    at once instead of waiting for one (a command to a graph that is not running)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -48,8 +55,8 @@ def zenoh_config(
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
-        # Clients keep retrying the hub, so a restarted hub is rejoined.
-        conf.insert_json5("connect/timeout_ms", "-1")
+        if retry:  # clients keep retrying the hub, so a restarted hub is rejoined
+            conf.insert_json5("connect/timeout_ms", "-1")
     if tls is not None:
         if tls.root_ca:
             conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(tls.root_ca))
@@ -71,20 +78,29 @@ def open_client(
     cancel: threading.Event | None = None,
     timeout_s: float | None = None,
     shared_memory: bool = True,
+    retry: bool = True,
 ) -> zenoh.Session | None:
     """A client session connected to the hub at `endpoint`, waiting for the hub as long as it takes.
 
     With `cancel` or `timeout_s`, the wait happens off the main thread so a signal can end it, or
     it gives up after `timeout_s`: returns None then. `shared_memory=False` for a session that
     outlives the processes it sweeps up after (the launcher): a segment it maps could never go.
+    `retry=False`: no hub listening returns None at once.
     """
-    conf = zenoh_config("client", connect=[endpoint], tls=tls, shared_memory=shared_memory)
+    conf = zenoh_config("client", connect=[endpoint], tls=tls, shared_memory=shared_memory, retry=retry)
     if cancel is None and timeout_s is None:
         return zenoh.open(conf)
     cancel = cancel or threading.Event()
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
     result: list[zenoh.Session] = []
-    opener = threading.Thread(target=lambda: result.append(zenoh.open(conf)), daemon=True)
+
+    def connect() -> None:
+        try:
+            result.append(zenoh.open(conf))
+        except zenoh.ZError as exc:  # nobody listens there (retry=False)
+            log.debug("no hub at %s: %s", endpoint, exc)
+
+    opener = threading.Thread(target=connect, daemon=True)
     opener.start()
     while opener.is_alive() and not cancel.is_set():
         opener.join(0.1)
@@ -95,8 +111,37 @@ def open_client(
     return None if cancel.is_set() or not result else result[0]
 
 
+def ask(session: zenoh.Session, key: str, command: dict, timeout_s: float) -> list[dict]:
+    """Send `command` as a query to every queryable on `key` (each replica of an operator, or the
+    launcher) and return their JSON answers. The query ends as soon as every receiver has answered,
+    so `timeout_s` only matters for a receiver that hangs."""
+    answers = []
+    replies = session.get(
+        key,
+        payload=json.dumps(command),
+        target=zenoh.QueryTarget.ALL,
+        consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=timeout_s,
+        priority=CONTROL_PRIORITY,
+        express=True,
+    )
+    for reply in replies:
+        if reply.ok is not None:
+            try:
+                answers.append(json.loads(reply.ok.payload.to_bytes()))
+            except ValueError:
+                log.warning("unreadable answer on %s", reply.ok.key_expr)
+    return answers
+
+
+def answer(query: zenoh.Query, key: str, body: dict) -> None:
+    """Answer a command query once and release it: the asker's query ends when all have answered."""
+    query.reply(key, json.dumps(body))
+    query.drop()
+
+
 def live_replicas(session: zenoh.Session, keys: Keys, op: str = "*", timeout_s: float = 2.0) -> set[tuple[str, str]]:
-    """(operator, replica) pairs holding a liveliness token right now: who would hear a command."""
+    """(operator, replica) pairs holding a liveliness token right now."""
     found = set()
     for reply in session.liveliness().get(keys.live(op, "*"), timeout=timeout_s):
         if reply.ok is not None:
@@ -119,6 +164,8 @@ def close_session(session: zenoh.Session, timeout_s: float = 5.0) -> bool:
 class Keys:
     """Key names of one graph: `umad/<graph>/<operator>/<output>` and the underscore-prefixed service keys."""
 
+    ALL_GRAPHS = "umad/*/_graph"  # every launcher on a hub answers here
+
     def __init__(self, graph: str):
         self.root = f"umad/{graph}"
 
@@ -132,6 +179,20 @@ class Keys:
 
     def control(self, op: str) -> str:
         return f"{self.root}/_ctl/{op}"
+
+    @property
+    def control_all(self) -> str:
+        return f"{self.root}/_ctl/**"
+
+    @property
+    def launcher(self) -> str:
+        """Where `umad op start|stop` reach the launcher."""
+        return self.control("_launcher")
+
+    @property
+    def graph_info(self) -> str:
+        """The launcher answers here with the graph it runs: name, file, hub, operators."""
+        return f"{self.root}/_graph"
 
     @property
     def ack(self) -> str:

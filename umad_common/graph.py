@@ -25,16 +25,10 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from umad_common.assignments import GraphError, merge_params
 from umad_common.bus import DEFAULT_HUB, TlsConfig
 from umad_common.operator import Operator, Source, UnknownOperatorError, load_operator_class
-
-
-class GraphError(ValueError):
-    """graph.yaml is invalid; `problems` lists every culprit found."""
-
-    def __init__(self, problems: list[str]):
-        self.problems = problems
-        super().__init__("invalid graph:\n  - " + "\n  - ".join(problems))
+from umad_common.pacing import SourceParams
 
 
 class TlsSpec(BaseModel):
@@ -145,40 +139,36 @@ class Graph:
         return validate_graph(data, self.path)
 
 
-def merge_params(target: dict[str, Any], updates: dict[str, Any]) -> None:
-    """Merge `{"weights.ssim": 0.5}`-style dotted keys into a nested params dict."""
-    for dotted, value in updates.items():
-        node = target
-        *parents, leaf = dotted.split(".")
-        for part in parents:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise GraphError([f"parameter {dotted!r}: {part!r} is not a mapping"])
-        node[leaf] = value
-
-
-def parse_assignment(text: str) -> tuple[str, str, Any]:
-    """`OP.PARAM=VALUE` (PARAM may be dotted, VALUE is YAML) -> (op, param, value)."""
-    key, sep, raw = text.partition("=")
-    op, dot, param = key.partition(".")
-    if not sep or not dot or not op or not param:
-        raise GraphError([f"{text!r}: expected OP.PARAM=VALUE, e.g. fusion.weights.ssim=0.5"])
-    return op, param, yaml.safe_load(raw)
-
-
 def load_graph(path: str | Path) -> Graph:
     """Read and validate a graph file. Custom operators (`uses:`) are imported from PYTHONPATH and
     from the graph file's folder."""
     path = Path(path)
     if str(path.resolve().parent) not in sys.path:
         sys.path.append(str(path.resolve().parent))
+    return validate_graph(_read_yaml(path), path)
+
+
+def graph_address(path: str | Path) -> tuple[str, str, TlsConfig | None]:
+    """A graph file's name, hub and TLS settings, read without importing its operators: what a
+    command needs to reach the graph when it runs."""
+    path = Path(path)
+    data = _read_yaml(path)
+    if not isinstance(data, dict):
+        raise GraphError([f"{path}: expected a mapping with `operators:`, got {type(data).__name__}"])
     try:
-        data = yaml.safe_load(path.read_text())
+        spec = GraphSpec.model_validate(data)
+    except ValidationError as exc:
+        raise GraphError([f"{path}: {_describe(err, data)}" for err in exc.errors()]) from None
+    return spec.name, spec.hub, Graph(spec, {}, path).tls_config()
+
+
+def _read_yaml(path: Path) -> Any:
+    try:
+        return yaml.safe_load(path.read_text())
     except FileNotFoundError:
         raise GraphError([f"{path}: graph file not found"]) from None
     except yaml.YAMLError as exc:
         raise GraphError([f"{path}: not valid YAML ({exc})"]) from None
-    return validate_graph(data, path)
 
 
 def validate_graph(data: Any, path: Path | None = None) -> Graph:
@@ -220,6 +210,10 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
                 problems.append(f"operator {op.id!r}: parameter {loc!r}: {err['msg']}")
         else:
             problems += [f"operator {op.id!r}: {p}" for p in cls.wiring_problems(params, set(op.inputs))]
+        if issubclass(cls, Source) and not issubclass(cls.Params, SourceParams):
+            problems.append(
+                f"operator {op.id!r}: a source's Params must extend umad_common.pacing.SourceParams (its pacing)"
+            )
         if cls.ordered and op.replicas > 1:
             problems.append(f"operator {op.id!r}: kind {cls.kind!r} processes frames in order and cannot have replicas")
         ports = {p.name: p for p in cls.inputs}

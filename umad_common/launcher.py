@@ -4,6 +4,11 @@ The graph is done when every source process has exited 0 (its stream is fully ac
 processes are then stopped with SIGTERM. Ctrl-C does the same at any time. A process that crashes
 is restarted with exponential backoff up to `max_restarts` times; after that, or when it exits with
 the runtime's configuration-error code, the whole graph stops and the launcher exits non-zero.
+
+The launcher answers on the bus: what it runs (`_graph`: name, file, hub, operators), so a command
+finds the graph without being told its file, and `umad op start|stop` (`_ctl/_launcher`), each with
+what it did. Operators run at a lower CPU priority than the hub and the launcher: on a machine the
+graph keeps busy, the bus and the commands that steer it still get the CPU when they need it.
 """
 
 from __future__ import annotations
@@ -23,9 +28,9 @@ from pathlib import Path
 
 import zenoh
 
-from replay.log import McapRecorder
-from umad_common.bus import Keys, cleanup_stale_shm, open_client
+from umad_common.bus import Keys, answer, cleanup_stale_shm, open_client
 from umad_common.graph import Graph, GraphError, OperatorSpec, load_graph
+from umad_common.mcap_log import McapRecorder
 from umad_common.runtime import EXIT_CONFIG
 
 log = logging.getLogger("umad.launch")
@@ -34,6 +39,7 @@ RECORDER_IDLE_S = 1.0
 HUB_CONNECT_TIMEOUT_S = 60.0
 PROGRESS_INTERVAL_S = 15.0
 HUB_MIN_LIFETIME_S = 5.0  # a hub that dies sooner after its start counts as failing to start
+OPERATOR_NICENESS = 5  # operators yield the CPU to the hub and the launcher (the control path)
 
 
 @dataclass
@@ -108,6 +114,8 @@ class Launcher:
         self._stop = threading.Event()
         self._print_lock = threading.Lock()
         self.sets = sets or []
+        self.keys = Keys(graph.name)
+        self.recorder: McapRecorder | None = None
         self._control: queue.Queue = queue.Queue()
         sources = set(graph.sources())
         self.replicas: list[Replica] = []
@@ -165,7 +173,7 @@ class Launcher:
             sys.stdout.write(f"[{name}] {line}" if line.endswith("\n") else f"[{name}] {line}\n")
             sys.stdout.flush()
 
-    def _spawn(self, rep: Replica) -> None:
+    def _spawn(self, rep: Replica, niceness: int = OPERATOR_NICENESS) -> None:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         rep.started_at = time.monotonic()
         try:
@@ -182,6 +190,11 @@ class Launcher:
             self._say(rep.name, f"cannot start {rep.command[0]}: {exc}")
             rep.proc, rep.failed, rep.restart_at = None, True, None
             return
+        if niceness:  # before the interpreter starts its threads, which inherit it
+            try:
+                os.setpriority(os.PRIO_PROCESS, rep.proc.pid, os.getpriority(os.PRIO_PROCESS, 0) + niceness)
+            except OSError:
+                pass  # the replica already exited; _watch reports it
         reader = threading.Thread(target=self._pump, args=(rep, rep.proc), daemon=True)
         reader.start()
         rep.readers.append(reader)
@@ -237,7 +250,7 @@ class Launcher:
             hub.restart_at = now + delay
         if now >= hub.restart_at:
             hub.restart_at = None
-            self._spawn(hub)
+            self._spawn(hub, niceness=0)
         return True
 
     def _stop_hub(self) -> None:
@@ -279,7 +292,7 @@ class Launcher:
         previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
         tls = self.graph.tls_config()
         self.hub_replica = Replica("hub", 0, self._hub_command(), False)
-        self._spawn(self.hub_replica)
+        self._spawn(self.hub_replica, niceness=0)
         hub = open_client(self.hub, tls, cancel=self._stop, timeout_s=HUB_CONNECT_TIMEOUT_S, shared_memory=False)
         if hub is None:
             for sig, handler in previous.items():
@@ -289,27 +302,24 @@ class Launcher:
                 return 130
             log.error("no hub answered at %s within %.0fs", self.hub, HUB_CONNECT_TIMEOUT_S)
             return 1
-        recorder = None
         subscribers = []
         try:
-            keys = Keys(self.graph.name)
-            if hub is not None:
-                subscribers.append(hub.declare_subscriber(f"{keys.root}/_stats/**", self._on_stats))
-                subscribers.append(hub.declare_subscriber(keys.control("_launcher"), self._on_control))
-                if self.record:
-                    recorder = McapRecorder(
-                        self.record,
-                        self.graph_file.read_text(),
-                        {"base_dir": str(self.graph.base_dir), "sets": json.dumps(self.sets)},
-                    )
-                    subscribers.append(
-                        hub.declare_subscriber(f"{keys.root}/**", lambda s: self._on_record(recorder, s))
-                    )
+            keys = self.keys
+            subscribers.append(hub.declare_subscriber(f"{keys.root}/_stats/**", self._on_stats))
+            subscribers.append(hub.declare_queryable(keys.control_all, self._on_command))
+            subscribers.append(hub.declare_queryable(keys.graph_info, self._on_graph_info))
+            if self.record:
+                recorder = self.recorder = McapRecorder(
+                    self.record,
+                    self.graph_file.read_text(),
+                    {"base_dir": str(self.graph.base_dir), "sets": json.dumps(self.sets)},
+                )
+                subscribers.append(hub.declare_subscriber(f"{keys.root}/**", lambda s: self._on_record(recorder, s)))
             for rep in self.replicas:
                 self._spawn(rep)
             code = self._supervise()
-            if recorder is not None:
-                while time.monotonic() - recorder.last_write < RECORDER_IDLE_S:
+            if self.recorder is not None:
+                while time.monotonic() - self.recorder.last_write < RECORDER_IDLE_S:
                     time.sleep(0.1)
             self._terminate_all()
             return code
@@ -317,9 +327,9 @@ class Launcher:
             self._terminate_all()  # also when something above raised: no operator outlives the launcher
             for sub in subscribers:
                 sub.undeclare()
-            if recorder is not None:
-                recorder.close()
-                log.info("recorded %d messages to %s", recorder.count, self.record)
+            if self.recorder is not None:
+                self.recorder.close()
+                log.info("recorded %d messages to %s", self.recorder.count, self.record)
             hub.close()
             self._stop_hub()
             for sig, handler in previous.items():
@@ -353,40 +363,75 @@ class Launcher:
             time.sleep(0.1)
         return 130
 
-    def _on_control(self, sample: zenoh.Sample) -> None:
-        """`umad op start|stop ID`: handled on the supervisor thread via a queue."""
-        try:
-            self._control.put(json.loads(sample.payload.to_bytes()))
-        except ValueError:
-            log.warning("ignoring a malformed launcher command")
+    def _running(self) -> list[str]:
+        return sorted({r.op_id for r in list(self.replicas) if r.proc is not None and r.proc.poll() is None})
+
+    def _on_graph_info(self, query: zenoh.Query) -> None:
+        """What this launcher runs, for commands that were not told the graph file."""
+        info = {
+            "name": self.graph.name,
+            "graph": str(self.graph_file.resolve()),
+            "hub": self.hub,
+            "operators": self._running(),
+        }
+        answer(query, self.keys.graph_info, info)
+
+    def _on_command(self, query: zenoh.Query) -> None:
+        """Every command to this graph is recorded (the log says what changed and when); those for
+        the launcher (`umad op start|stop ID`) are applied on the supervisor thread and answered
+        there. Commands for an operator are answered by its replicas."""
+        key = str(query.key_expr)
+        payload = query.payload.to_bytes() if query.payload else b""
+        if self.recorder is not None:
+            self.recorder.write(key, payload)
+        if key == self.keys.launcher:
+            self._control.put((payload, query))
+        else:
+            query.drop()
 
     def _apply_control(self) -> None:
         while not self._control.empty():
-            command = self._control.get()
-            if "stop" in command:
-                for rep in self.replicas:
-                    if rep.op_id == command["stop"] and rep.proc and rep.proc.poll() is None:
-                        self._say(rep.name, "stopping on request")
-                        rep.proc.send_signal(signal.SIGTERM)
-            elif "start" in command:
-                self._start_operator(command["start"], command.get("graph"))
+            payload, query = self._control.get()
+            try:
+                command = json.loads(payload)
+                if "stop" in command:
+                    outcome = self._stop_operator(str(command["stop"]))
+                else:
+                    outcome = self._start_operator(str(command["start"]), command.get("graph"))
+            except (ValueError, KeyError, TypeError) as exc:
+                outcome = {
+                    "status": "refused",
+                    "reason": f"expected {{'start'|'stop': ID}}, got {payload[:200]!r}: {exc}",
+                }
+            answer(query, self.keys.launcher, outcome)
 
-    def _start_operator(self, op_id: str, graph_file: str | None) -> None:
+    def _stop_operator(self, op_id: str) -> dict[str, str]:
+        stopping = [r for r in self.replicas if r.op_id == op_id and r.proc and r.proc.poll() is None]
+        if not stopping:
+            return {"status": "refused", "reason": f"{op_id} is not running (running: {', '.join(self._running())})"}
+        for rep in stopping:
+            self._say(rep.name, "stopping on request")
+            rep.proc.send_signal(signal.SIGTERM)
+        return {"status": "applied", "message": f"stopping {op_id} ({len(stopping)} replicas)"}
+
+    def _start_operator(self, op_id: str, graph_file: str | None) -> dict[str, str]:
+        """Start `op_id` from `graph_file`, or from the launched graph's file read again (an
+        operator added to it after launch)."""
         try:
             graph = load_graph(graph_file or self.graph_file)
             spec = graph.op(op_id)
         except GraphError as exc:
             log.error("cannot start %s: %s", op_id, exc)
-            return
+            return {"status": "refused", "reason": str(exc)}
         self.replicas = [r for r in self.replicas if not (r.op_id == op_id and (r.finished or r.failed))]
         if any(r.op_id == op_id for r in self.replicas):
-            log.warning("%s is already running", op_id)
-            return
+            return {"status": "refused", "reason": f"{op_id} is already running"}
         for index in range(spec.replicas):
             rep = Replica(op_id, index, self._command(graph, Path(graph_file or self.graph_file), spec, index), False)
             self.replicas.append(rep)
             self._spawn(rep)
             self._say(rep.name, "started on request")
+        return {"status": "applied", "message": f"started {op_id} ({spec.replicas} replicas)"}
 
     def _on_stats(self, sample: zenoh.Sample) -> None:
         try:

@@ -29,6 +29,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from umad_common.messages import Message
+from umad_common.pacing import SourceParams
 from umad_common.plugins import import_class
 
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # holds umad_common/ (and operators/, replay/)
@@ -162,7 +163,10 @@ class SourceFrame:
 
 class Source(Operator):
     """An operator with no inputs that produces frames (the replayer). The runtime paces it:
-    at most `window` frames in flight, advancing on acks from the graph's sinks."""
+    at most `window` frames in flight, advancing on acks from the graph's sinks. Its `Params`
+    extend `SourceParams`, which hold the pacing settings."""
+
+    Params: ClassVar[type[BaseModel]] = SourceParams
 
     def frames(self) -> Iterator[SourceFrame]:
         """Yield frames run after run, seq 0, 1, 2, ... within a run."""

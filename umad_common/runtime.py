@@ -18,6 +18,10 @@ Delivery protocol (lossless by design):
     passed on by every other operator as a skip marker, without computing;
   - after the last frame of a run is acked the source sends an end-of-run marker (meta `eos`),
     which each operator passes on after calling its `end_run`.
+
+Commands arrive as queries on the control key and are answered once applied or refused; what does
+not change while the graph runs (is this replica a sink, which producers feed a wildcard port) is
+worked out once, or again when the live membership changes, never per frame.
 """
 
 from __future__ import annotations
@@ -32,18 +36,21 @@ import sys
 import threading
 import time
 from collections import defaultdict
-from typing import Any
+from collections.abc import Callable
+from typing import Any, NoReturn
 
 import msgpack
 import zenoh
 from pydantic import ValidationError
 
-from replay.log import LogError
-from umad_common.bus import Keys, ShutdownSignal, close_session, open_client
+from umad_common.assignments import GraphError, merge_params, parse_sets
+from umad_common.bus import Keys, ShutdownSignal, answer, close_session, open_client
 from umad_common.delivery import FrameJoiner, Membership, OutputCache, Stats
-from umad_common.graph import Graph, GraphError, load_graph, merge_params, parse_assignment
+from umad_common.graph import Graph, load_graph
+from umad_common.mcap_log import LogError
 from umad_common.messages import Message, MessageError, decode, encode
 from umad_common.operator import Context, Frame, Operator, Output, Source
+from umad_common.pacing import JoinParams
 from umad_common.source_driver import SourceDriver
 
 log = logging.getLogger("umad.runtime")
@@ -85,7 +92,7 @@ class OperatorRuntime:
         self.log = logging.getLogger(f"umad.{op_id}")
         context = Context(op_id, replica, graph.name, graph.base_dir, self.log)
         if replay_log and issubclass(self.cls, Source):
-            from replay.log_source import LoggedSource
+            from umad_common.log_source import LoggedSource
 
             params = self.cls.validate_params(self.spec.params)
             self.operator: Operator = LoggedSource(replay_log, self.cls, params, context, allow_truncated)
@@ -111,36 +118,47 @@ class OperatorRuntime:
         self._subscribers: list[Any] = []
         self._last_stats = 0.0
         self._last_bad_log = 0.0
+        self.is_sink = op_id in graph.sinks()  # sinks ack frames end to end
+        self.live = self._live_mode()
+        self._params_meta = self.operator.params.model_dump(mode="json")  # recorded in every output
+        self._route_cache: tuple[dict[str, set[str]], list[str]] | None = None  # expected producers, replicas
 
     # -- wiring -----------------------------------------------------------------------------------
+
+    def subscribe(self, key: str, callback: Callable[[zenoh.Sample], None]) -> None:
+        """A subscriber that lives as long as this replica (the source driver takes acks with it)."""
+        self._subscribers.append(self.session.declare_subscriber(key, callback))
 
     def _subscribe_inputs(self) -> None:
         for port in self.spec.inputs:
             for source in self.spec.sources_of(port):
-                self._subscribers.append(
-                    self.session.declare_subscriber(
-                        self.keys.pattern(source), lambda s, port=port: self.data_q.put((port, s))
-                    )
-                )
+                self.subscribe(self.keys.pattern(source), lambda s, port=port: self.data_q.put((port, s)))
 
     def _subscribe_service(self) -> None:
+        control = self.keys.control(self.op_id)
+        self.subscribe(control, lambda s: self.ctl_q.put(("ctl", (s.payload.to_bytes(), None))))  # e.g. resend
         self._subscribers.append(
-            self.session.declare_subscriber(self.keys.control(self.op_id), lambda s: self.ctl_q.put(("ctl", s)))
+            self.session.declare_queryable(
+                control, lambda q: self.ctl_q.put(("ctl", (q.payload.to_bytes() if q.payload else b"", q)))
+            )
         )
-        self._subscribers.append(self.session.declare_subscriber(self.keys.left, lambda s: self.ctl_q.put(("left", s))))
+        self.subscribe(self.keys.left, lambda s: self.ctl_q.put(("left", s)))
         self._subscribers.append(
             self.session.liveliness().declare_subscriber(
                 self.keys.live_all, lambda s: self.ctl_q.put(("live", s)), history=True
             )
         )
 
-    @property
-    def is_sink(self) -> bool:
-        return self.op_id in self.graph.sinks()
+    def _routes(self) -> tuple[dict[str, set[str]], list[str]]:
+        """The producers each wildcard port waits for and this operator's sorted live replicas:
+        computed again only after the live membership changed."""
+        if self._route_cache is None:
+            self._route_cache = (self._expected(), sorted(self.members.replicas(self.op_id) | {self.replica_id}))
+        return self._route_cache
 
     def _owns(self, seq: int) -> bool:
         """Replicas split frames by seq over the sorted live replica set."""
-        replicas = sorted(self.members.replicas(self.op_id) | {self.replica_id})
+        replicas = self._routes()[1]
         if len(replicas) == 1:
             return True
         return replicas[seq % len(replicas)] == self.replica_id
@@ -165,13 +183,15 @@ class OperatorRuntime:
 
     # -- service messages ---------------------------------------------------------------------------
 
-    def _handle_service(self) -> bool:
-        """Apply queued control and liveliness events; True when the set of live operators changed."""
+    def handle_service(self) -> bool:
+        """Apply queued commands and liveliness events; True when the set of live operators changed."""
         changed = self.members.expire()
         while True:
             try:
                 kind, sample = self.ctl_q.get_nowait()
             except queue.Empty:
+                if changed:
+                    self._route_cache = None
                 return changed
             if kind == "live":
                 op, rep = self.keys.parse_live(str(sample.key_expr))
@@ -188,11 +208,17 @@ class OperatorRuntime:
                 except Exception:
                     self.stats.bad_messages += 1
             else:
-                self._apply_control(sample.payload.to_bytes())
+                payload, query = sample
+                outcome = self._apply_control(payload)
+                if query is not None:
+                    answer(
+                        query, self.keys.control(self.op_id), {"op": self.op_id, "replica": self.replica_id, **outcome}
+                    )
 
-    def _apply_control(self, payload: bytes) -> None:
-        """Stop, resend or a parameter change. A change that fails validation, or that the operator
-        refuses (a weight file that does not load), is logged and counted; the old parameters stay."""
+    def _apply_control(self, payload: bytes) -> dict[str, str]:
+        """Stop, resend or a parameter change; returns the outcome the asking command prints. A
+        change that fails validation, or that the operator refuses (a weight file that does not
+        load), is logged and counted; the old parameters stay."""
         try:
             command = json.loads(payload)
             if not isinstance(command, dict):
@@ -200,10 +226,10 @@ class OperatorRuntime:
             if command.get("stop"):
                 self.log.info("stop requested on the control key")
                 self.shutdown.set()
-                return
+                return {"status": "stopping"}
             if "resend" in command:
                 self.resend_requests.append(command["resend"])
-                return
+                return {"status": "resending"}
             updates = command["set"]
             if not isinstance(updates, dict):
                 raise TypeError(f"`set` must map parameter names to values, got {type(updates).__name__}")
@@ -214,7 +240,7 @@ class OperatorRuntime:
         except (ValueError, KeyError, TypeError, ValidationError, GraphError) as exc:
             self.stats.errors += 1
             self.log.error("rejected parameter change %r: %s", payload[:200], exc)
-            return
+            return {"status": "refused", "reason": _one_line(exc)}
         try:
             self.operator.update_params(new)
         except Exception as exc:  # the operator could not take the change: keep running as before
@@ -223,14 +249,26 @@ class OperatorRuntime:
                 "parameter change %s refused by %s: %s; keeping the old parameters", updates, self.op_id, exc
             )
             self.operator.params = old
-            return
+            return {"status": "refused", "reason": f"{type(exc).__name__}: {exc}"}
+        self._params_meta = self.operator.params.model_dump(mode="json")
         self.stats.param_changes += 1
         self.log.info("parameters changed: %s", updates)
+        return {"status": "applied"}
 
     def _live_mode(self) -> bool:
         """Live (a source paces in real time): joins may give up at their deadline. Lossless (the
         default): every expected input is waited for."""
-        return any(self.graph.op(src).params.get("pacing") == "realtime" for src in self.graph.sources())
+        return any(
+            self.graph.classes[src].validate_params(self.graph.op(src).params).pacing == "realtime"
+            for src in self.graph.sources()
+        )
+
+    def _deadline_s(self) -> float:
+        """How long a partly joined frame may wait in live mode; `umad set OP.deadline_ms=...`
+        applies from the next frame on."""
+        if not self.live or not isinstance(self.operator.params, JoinParams):
+            return 0.0
+        return self.operator.params.deadline_ms / 1e3
 
     def _request_rewind(self, run: str, seq: int) -> None:
         """An ordered operator that (re)started mid-run rebuilds its state by re-observing the run
@@ -247,7 +285,7 @@ class OperatorRuntime:
             request = {"resend": {"run": run, "from": 0, "to": seq, "for": self.op_id}}
             self.session.put(self.keys.control(source), json.dumps(request))
 
-    def _publish_stats(self, force: bool = False) -> None:
+    def publish_stats(self, force: bool = False) -> None:
         now = time.monotonic()
         if force or now - self._last_stats >= STATS_INTERVAL_S:
             self._last_stats = now
@@ -267,28 +305,31 @@ class OperatorRuntime:
 
     # -- publishing ---------------------------------------------------------------------------------
 
-    def _encode_outputs(
+    def encode_outputs(
         self, run: str, seq: int, stamp_ns: int, outputs: dict[str, Output], extra_meta: dict
     ) -> list[tuple[str, bytes]]:
+        """One frame's outputs as (port, payload) pairs; each records the parameters that made it."""
         payloads = []
-        params = self.operator.params.model_dump(mode="json")
         for port, out in outputs.items():
             if port not in self.publishers:
                 raise ValueError(f"operator returned output {port!r}; it declares {list(self.cls.outputs)}")
-            meta = {**out.meta, **extra_meta, "params": params}
+            meta = {**out.meta, **extra_meta, "params": self._params_meta}
             msg = Message(run, seq, stamp_ns, self.op_id, meta, out.arrays)
             payloads.append((port, encode(msg)))
         return payloads
 
-    def _publish(self, payloads: list[tuple[str, bytes]]) -> None:
+    def publish(self, payloads: list[tuple[str, bytes]], count: bool = True) -> None:
+        """Put one frame's payloads; `count=False` for a retransmission, which is no new frame."""
         for port, payload in payloads:
             self.publishers[port].put(payload)
-        self.stats.frames_out += 1
+        if count:
+            self.stats.frames_out += 1
 
     def _ack(self, run: str, seq: int) -> None:
         self.ack_pub.put(msgpack.packb({"run": run, "seq": seq, "op": self.op_id}))
 
-    def _markers(self, run: str, seq: int, stamp_ns: int, meta: dict) -> list[tuple[str, bytes]]:
+    def markers(self, run: str, seq: int, stamp_ns: int, meta: dict) -> list[tuple[str, bytes]]:
+        """Array-less messages on every output: an end-of-run marker or a frame's error marker."""
         return [(port, encode(Message(run, seq, stamp_ns, self.op_id, meta))) for port in self.cls.outputs]
 
     # -- the transform loop -------------------------------------------------------------------------
@@ -307,7 +348,7 @@ class OperatorRuntime:
         finally:
             self.session.put(self.keys.left, msgpack.packb({"op": self.op_id, "replica": self.replica_id}))
             token.undeclare()
-            self._publish_stats(force=True)
+            self.publish_stats(force=True)
         if not isinstance(self.operator, Source):
             self.log.info(
                 "stopped after %d frames (%d errors, %d bad messages)",
@@ -321,7 +362,6 @@ class OperatorRuntime:
         ended: dict[str, list[tuple[str, bytes]]] = {}
         next_seq: dict[str, int] = defaultdict(int)
         in_order: dict[str, dict[int, Frame]] = defaultdict(dict)
-        live = self._live_mode()
 
         def finish(frame: Frame) -> None:
             key = (frame.run, frame.seq)
@@ -330,28 +370,28 @@ class OperatorRuntime:
             failed = [m for m in received if m.meta.get("error")]
             skipped = any(m.meta.get("skip") for m in received)
             if failed:
-                payloads = self._markers(frame.run, frame.seq, frame.stamp_ns, {"error": failed[0].meta["error"]})
+                payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"error": failed[0].meta["error"]})
             elif skipped and not self.cls.ordered:
-                payloads = self._markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
+                payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
             else:
                 start = time.perf_counter()
                 try:
                     outputs = self.operator.process(frame)
                     if skipped:  # an in-order operator saw the frame for its state; nobody scores it
-                        payloads = self._markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
+                        payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
                     else:
-                        payloads = self._encode_outputs(
+                        payloads = self.encode_outputs(
                             frame.run, frame.seq, frame.stamp_ns, outputs, {"partial": True} if frame.partial else {}
                         )
                 except Exception as exc:  # one bad frame must not stop the operator
                     self.stats.errors += 1
                     self.log.exception("frame %s failed: %s", frame.frame_id, exc)
-                    payloads = self._markers(
+                    payloads = self.markers(
                         frame.run, frame.seq, frame.stamp_ns, {"error": f"{self.op_id}: {type(exc).__name__}: {exc}"}
                     )
                 self.stats.latency.add(time.perf_counter() - start)
             cache.put(key, payloads)
-            self._publish(payloads)
+            self.publish(payloads)
             if self.is_sink:
                 self._ack(frame.run, frame.seq)
 
@@ -362,34 +402,33 @@ class OperatorRuntime:
                     cache.put((run, msg.seq), ended[run])
                 republish = cache.due_for_republish((run, msg.seq))
                 if republish:
-                    self._publish(republish)
+                    self.publish(republish)
                     if self.is_sink:
                         self._ack(run, msg.seq)
                 return
             meta = {"eos": True, "frames": msg.meta.get("frames", msg.seq)}
             try:
                 outputs = self.operator.end_run(run)
-                payloads = self._encode_outputs(run, msg.seq, msg.stamp_ns, outputs, meta)
+                payloads = self.encode_outputs(run, msg.seq, msg.stamp_ns, outputs, meta)
                 covered = {p for p, _ in payloads}
-                payloads += [(p, b) for p, b in self._markers(run, msg.seq, msg.stamp_ns, meta) if p not in covered]
+                payloads += [(p, b) for p, b in self.markers(run, msg.seq, msg.stamp_ns, meta) if p not in covered]
             except Exception as exc:
                 self.stats.errors += 1
                 self.log.exception("end of run %s failed: %s", run, exc)
-                payloads = self._markers(run, msg.seq, msg.stamp_ns, meta)
+                payloads = self.markers(run, msg.seq, msg.stamp_ns, meta)
             ended[run] = payloads
             cache.put((run, msg.seq), payloads)
             cache.last_republish[(run, msg.seq)] = time.monotonic()
             next_seq.pop(run, None)
             in_order.pop(run, None)
-            self._publish(payloads)
+            self.publish(payloads)
             if self.is_sink:
                 self._ack(run, msg.seq)
 
         while not self.shutdown.is_set():
-            live_changed = self._handle_service()
-            self._publish_stats()
-            # read each time round: `umad set OP.deadline_ms=...` applies from the next frame on
-            deadline_s = float(getattr(self.operator.params, "deadline_ms", 0) or 0) / 1e3 if live else 0.0
+            live_changed = self.handle_service()
+            self.publish_stats()
+            deadline_s = self._deadline_s()
             try:
                 port, sample = self.data_q.get(timeout=0.05)
             except queue.Empty:
@@ -410,7 +449,7 @@ class OperatorRuntime:
                     self.stats.duplicates += 1
                     republish = cache.due_for_republish(key)
                     if republish:
-                        self._publish(republish)
+                        self.publish(republish)
                         if self.is_sink:
                             self._ack(*key)
                     continue
@@ -419,7 +458,7 @@ class OperatorRuntime:
                 self.joiner.add(port, producer, msg)
             elif not live_changed and not (deadline_s and self.joiner.pending):
                 continue
-            for frame in self.joiner.pop_ready(self._expected(), deadline_s):
+            for frame in self.joiner.pop_ready(self._routes()[0], deadline_s):
                 if not self.cls.ordered:
                     finish(frame)
                     continue
@@ -433,6 +472,13 @@ class OperatorRuntime:
                     next_seq[frame.run] += 1
 
 
+def _one_line(exc: Exception) -> str:
+    """An error as one line for a command's answer (a schema error lists each field on its own line)."""
+    if isinstance(exc, ValidationError):
+        return "; ".join(f"{'.'.join(str(x) for x in e['loc']) or 'params'}: {e['msg']}" for e in exc.errors())
+    return f"{type(exc).__name__}: {exc}".replace("\n", " ")
+
+
 def run_operator(
     graph: Graph,
     op_id: str,
@@ -441,38 +487,50 @@ def run_operator(
     max_frames: int | None = None,
     replay_log: str | None = None,
     allow_truncated: bool = False,
-) -> int:
-    """Connect to the hub and run one replica until the stream ends (sources) or a signal arrives."""
+) -> NoReturn:
+    """Connect to the hub, run one replica until the stream ends (sources) or a signal arrives, and
+    end the process.
+
+    The process ends with `os._exit` once its operator and session are closed and its output is
+    flushed. The interpreter's own finalization is skipped: it garbage-collects every object torch,
+    scikit-learn and the models left behind, CPU that a graph stopping all its replicas at once on
+    a busy machine does not have (measured on 2 cores: every replica was through its shutdown
+    within 0.15 s of SIGTERM, then sat in that collection past the launcher's grace period and was
+    killed). With the hub gone, Zenoh's threads would hold up a normal exit as well.
+    """
     shutdown = ShutdownSignal()
     tls = graph.tls_config()
     session = open_client(connect or graph.spec.hub, tls, cancel=shutdown.event)
     if session is None:
         log.info("stopped while waiting for the hub at %s", connect or graph.spec.hub)
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(0)  # the thread still waiting inside Zenoh would hold up a normal exit
+        _exit(0)
+    code = 0
     try:
-        try:
-            runtime = OperatorRuntime(
-                graph, op_id, replica, session, shutdown.event, max_frames, replay_log, allow_truncated
-            )
-        except Exception as exc:  # bad parameters, missing weights: say so once, do not restart
-            log.error("operator %s could not start: %s: %s", op_id, type(exc).__name__, exc)
-            return EXIT_CONFIG
+        runtime = OperatorRuntime(
+            graph, op_id, replica, session, shutdown.event, max_frames, replay_log, allow_truncated
+        )
+    except Exception as exc:  # bad parameters, missing weights: say so once, do not restart
+        log.error("operator %s could not start: %s: %s", op_id, type(exc).__name__, exc)
+        code = EXIT_CONFIG
+    else:
         try:
             runtime.run()
         except LogError as exc:
             log.error("%s", exc)
-            return EXIT_CONFIG
+            code = EXIT_CONFIG
         finally:
             runtime.operator.close()
     finally:
-        closed = close_session(session)
-    if not closed:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(0)  # Zenoh's runtime threads would keep a clean interpreter exit waiting
-    return 0
+        close_session(session)
+    _exit(code)
+
+
+def _exit(code: int) -> NoReturn:
+    """End the process at once, after flushing what it has to say."""
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -489,18 +547,13 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     try:
         graph = load_graph(args.graph)
-        overrides: dict[str, dict[str, Any]] = defaultdict(dict)
-        for text in args.set:
-            op, param, value = parse_assignment(text)
-            overrides[op][param] = value
+        overrides = parse_sets(args.set)
         if overrides:
             graph = graph.with_params(overrides)
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return EXIT_CONFIG
-    return run_operator(
-        graph, args.op, args.replica, args.connect, args.max_frames, args.replay_log, args.allow_truncated
-    )
+    run_operator(graph, args.op, args.replica, args.connect, args.max_frames, args.replay_log, args.allow_truncated)
 
 
 if __name__ == "__main__":

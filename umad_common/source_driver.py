@@ -12,6 +12,7 @@ import msgpack
 
 from umad_common.delivery import LatencyWindow
 from umad_common.operator import Source, SourceFrame
+from umad_common.pacing import SourceParams
 
 if TYPE_CHECKING:
     from umad_common.runtime import OperatorRuntime
@@ -31,11 +32,8 @@ class SourceDriver:
     def __init__(self, rt: OperatorRuntime):
         self.rt = rt
         self.source: Source = rt.operator  # type: ignore[assignment]
-        params = self.source.params
-        self.window = int(getattr(params, "window", 8))
-        self.realtime = getattr(params, "pacing", "lossless") == "realtime"
-        self.rate_hz = float(getattr(params, "rate_hz", 10.0))
-        self.ack_timeout_s = float(getattr(params, "ack_timeout_s", 15.0))
+        if not isinstance(self.source.params, SourceParams):
+            raise TypeError(f"{rt.op_id}: a source's Params must extend SourceParams, got {type(self.source.params)}")
         self.sinks = set(rt.graph.sinks())
         self.acks: dict[tuple[str, int], set[str]] = defaultdict(set)
         self.ack_q: queue.Queue = queue.Queue()
@@ -43,11 +41,14 @@ class SourceDriver:
         self.e2e = LatencyWindow()
         self.markers: set[tuple[str, int]] = set()  # end-of-run keys, which are not frames
 
+    @property
+    def pacing(self) -> SourceParams:
+        """Read each time: `umad set replayer.window=...` applies to the next frame."""
+        return self.source.params  # type: ignore[return-value]
+
     def run(self) -> None:
         rt = self.rt
-        rt._subscribers.append(
-            rt.session.declare_subscriber(rt.keys.ack, lambda s: self.ack_q.put(s.payload.to_bytes()))
-        )
+        rt.subscribe(rt.keys.ack, lambda s: self.ack_q.put(s.payload.to_bytes()))
         self._wait_for_graph()
         rt.stats.total_frames = self.source.total_frames()
         if rt.max_frames is not None and rt.stats.total_frames is not None:
@@ -64,12 +65,12 @@ class SourceDriver:
                 self._end_run(current, count, last_stamp)
                 count = 0
             current = sf.run
-            if self.realtime:
-                next_due += 1.0 / self.rate_hz
+            if self.pacing.pacing == "realtime":
+                next_due += 1.0 / self.pacing.rate_hz
                 while time.monotonic() < next_due and not rt.shutdown.is_set():
                     self._service(min(0.01, max(0.0, next_due - time.monotonic())))
             else:
-                while len(self.inflight) >= self.window and not rt.shutdown.is_set():
+                while len(self.inflight) >= self.pacing.window and not rt.shutdown.is_set():
                     self._service(0.01)
             self._send((sf.run, sf.seq), self._payloads(sf))
             sent += 1
@@ -78,7 +79,7 @@ class SourceDriver:
         if current is not None and not rt.shutdown.is_set():
             self._end_run(current, count, last_stamp)
         rt.stats.busy_s = time.monotonic() - started
-        rt._publish_stats(force=True)
+        rt.publish_stats(force=True)
         rt.log.info("source finished: %d frames sent, %d retransmits", sent, rt.stats.retransmits)
 
     def _wait_for_graph(self) -> None:
@@ -86,7 +87,7 @@ class SourceDriver:
         wanted = {op.id for op in self.rt.graph.spec.operators}
         deadline = time.monotonic() + LIVE_WAIT_S
         while not self.rt.shutdown.is_set():
-            self.rt._handle_service()
+            self.rt.handle_service()
             missing = wanted - self.rt.members.ops()
             if not missing:
                 time.sleep(0.2)  # let liveliness-triggered subscriptions settle at the hub
@@ -102,22 +103,22 @@ class SourceDriver:
         if sf.error is not None:
             self.rt.stats.errors += 1
             self.rt.log.error("frame %s#%d cannot be read, sent on as an error: %s", sf.run, sf.seq, sf.error)
-            return self.rt._markers(sf.run, sf.seq, sf.stamp_ns, {"error": f"{self.rt.op_id}: {sf.error}"})
+            return self.rt.markers(sf.run, sf.seq, sf.stamp_ns, {"error": f"{self.rt.op_id}: {sf.error}"})
         if sf.raw:
             return list(sf.raw.items())
-        return self.rt._encode_outputs(sf.run, sf.seq, sf.stamp_ns, sf.outputs, {})
+        return self.rt.encode_outputs(sf.run, sf.seq, sf.stamp_ns, sf.outputs, {})
 
     def _send(self, key: tuple[str, int], payloads: list[tuple[str, bytes]]) -> None:
         now = time.monotonic()
-        self.rt._publish(payloads)
+        self.rt.publish(payloads)
         if self.sinks:
             self.inflight[key] = (payloads, now, now)
 
     def _service(self, timeout: float) -> None:
         """Take acks, retransmit what timed out, answer resend requests, publish stats."""
         rt = self.rt
-        rt._handle_service()
-        rt._publish_stats()
+        rt.handle_service()
+        rt.publish_stats()
         while rt.resend_requests:
             self._resend(rt.resend_requests.pop(0))
         try:
@@ -146,9 +147,9 @@ class SourceDriver:
             except queue.Empty:
                 raw = None
         now = time.monotonic()
-        timeout_s = max(self.ack_timeout_s, 3 * (self.e2e.percentiles_ms()["p99_ms"] or 0) / 1e3)
+        timeout_s = max(self.pacing.ack_timeout_s, 3 * (self.e2e.percentiles_ms()["p99_ms"] or 0) / 1e3)
         for key, (payloads, first, last) in list(self.inflight.items()):
-            if now - last > timeout_s and self.realtime:
+            if now - last > timeout_s and self.pacing.pacing == "realtime":
                 rt.log.warning(
                     "frame %s#%d not acked after %.1fs: given up (realtime pacing)", key[0], key[1], now - last
                 )
@@ -157,8 +158,7 @@ class SourceDriver:
             elif now - last > timeout_s:
                 rt.log.warning("frame %s#%d not acked after %.1fs: re-sending", key[0], key[1], now - last)
                 rt.stats.retransmits += 1
-                for port, payload in payloads:
-                    rt.publishers[port].put(payload)
+                rt.publish(payloads, count=False)
                 self.inflight[key] = (payloads, first, now)
 
     def _resend(self, request: dict) -> None:
@@ -167,7 +167,7 @@ class SourceDriver:
         try:
             run, first, last = str(request["run"]), int(request["from"]), int(request["to"])
             for seq in range(first, last):
-                rt._publish(self._payloads(self.source.frame_or_error(run, seq)))
+                rt.publish(self._payloads(self.source.frame_or_error(run, seq)))
         except NotImplementedError:
             rt.log.error(
                 "%s cannot resend frames (no frame_at); %s must start its run over", rt.op_id, request.get("for")
@@ -184,7 +184,7 @@ class SourceDriver:
         rt = self.rt
         while self.inflight and not rt.shutdown.is_set():
             self._service(0.01)
-        markers = rt._markers(run, frames, stamp_ns, {"eos": True, "frames": frames})
+        markers = rt.markers(run, frames, stamp_ns, {"eos": True, "frames": frames})
         self.markers.add((run, frames))
         self._send((run, frames), markers)
         while self.inflight and not rt.shutdown.is_set():

@@ -7,11 +7,12 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.messages import Message, decode, encode
 from umad_common.operator import Input, Operator, Output, Source, SourceFrame
+from umad_common.pacing import SourceParams
 
 
 class BlobSource(Source):
@@ -20,11 +21,9 @@ class BlobSource(Source):
     kind = "bench_blob"
     outputs = ("blob",)
 
-    class Params(BaseModel):
-        model_config = ConfigDict(extra="forbid")
+    class Params(SourceParams):
         frames: int = Field(200, description="frames to send")
         size_bytes: int = Field(1 << 20, description="payload size per frame")
-        window: int = Field(8, description="frames in flight")
 
     def frames(self):
         blob = np.random.default_rng(0).integers(0, 255, self.params.size_bytes, dtype=np.uint8)

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import yaml
 
+from umad_common import DEFAULT_GRAPH
 from umad_common.benchmarks.graphs import run_bench_graph
-from umad_common.commands.common import DEFAULT_GRAPH
 
 
 def bench_pipeline(frames: int = 30, hub: str = "tcp/127.0.0.1:7449", graph: Path = DEFAULT_GRAPH) -> dict:

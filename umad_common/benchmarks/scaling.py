@@ -14,10 +14,11 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.operator import Output, Source, SourceFrame
+from umad_common.pacing import SourceParams
 
 
 class WorldModelFrames(Source):
@@ -26,12 +27,10 @@ class WorldModelFrames(Source):
     kind = "bench_world_model_frames"
     outputs = ("frame",)
 
-    class Params(BaseModel):
-        model_config = ConfigDict(extra="forbid")
+    class Params(SourceParams):
         frames: int = Field(40, description="frames to send")
         height: int = Field(128, description="image height")
         width: int = Field(192, description="image width")
-        window: int = Field(8, description="frames in flight")
 
     def frames(self):
         rng = np.random.default_rng(0)

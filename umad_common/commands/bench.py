@@ -1,4 +1,4 @@
-"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|all] [--out FILE.json]`.
+"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|control|all] [--out FILE.json]`.
 
 Each bench measures both sides of its ratio in the same run on the same machine, so the ratio is
 meaningful where the absolute numbers are not. Results are printed as Markdown and, with --out,
@@ -10,17 +10,19 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-BENCHES = ("bus", "metrics", "differences", "predictors", "scaling", "segmenters", "pipeline")
+BENCHES = ("bus", "metrics", "differences", "predictors", "scaling", "segmenters", "pipeline", "control")
 
 
 def add_arguments(parser):
     parser.add_argument("which", nargs="?", default="all", choices=[*BENCHES, "all"])
     parser.add_argument("--out", type=Path, default=None, help="write results as JSON (and .md beside it)")
-    parser.add_argument("--frames", type=int, default=None, help="frames per bench (default: each bench's own)")
+    parser.add_argument(
+        "--frames", type=int, default=None, help="frames per bench, commands for control (default: each bench's own)"
+    )
     parser.add_argument("--pixels", type=int, default=10**8, help="pixels for the metrics bench")
     parser.add_argument("--hub", default="tcp/127.0.0.1:7449", help="loopback endpoint the bench graphs use")
     parser.add_argument(
-        "--data", type=Path, default=None, help="segmenters: labelled AnoVox drives (default: generated)"
+        "--data", type=Path, default=None, help="segmenters, control: AnoVox drives (default: generated)"
     )
     parser.add_argument("--tune", action="store_true", help="segmenters: measure a parameter grid per method")
     parser.add_argument(
@@ -79,6 +81,10 @@ def _run_one(name: str, args) -> dict:
             max_frames=args.frames or 0,
             seed=args.seed,
         )
+    if name == "control":
+        from umad_common.benchmarks.control import bench_control
+
+        return bench_control(rounds=args.frames or 20, hub=args.hub, data=args.data)
     from umad_common.benchmarks.pipeline import bench_pipeline
 
     return bench_pipeline(frames=args.frames or 30, hub=args.hub)

@@ -1,19 +1,25 @@
-"""Argument helpers the graph-running verbs share."""
+"""Argument helpers the graph-running verbs share, and how a command reaches the running graph.
+
+`umad set` and `umad op start|stop` never import an operator: they ask the hub which graph runs
+there (the launcher answers with its name, file and operators), then send their command as a query
+that the replicas or the launcher answer once they applied or refused it.
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
-import time
-from collections import defaultdict
-from pathlib import Path
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
-from umad_common.graph import Graph, GraphError, load_graph, missing_local_files, parse_assignment
+from umad_common import DEFAULT_GRAPH
+from umad_common.assignments import GraphError, parse_sets
 
-DEFAULT_GRAPH = Path(__file__).resolve().parents[2] / "graph.yaml"
-CONNECT_TIMEOUT_S = 10.0  # how long `umad set` / `umad op` wait for a running graph's hub
-LIVELINESS_ATTEMPTS = 3
+if TYPE_CHECKING:
+    from umad_common.graph import Graph
+
+CONNECT_TIMEOUT_S = 10.0  # how long a command waits for the hub's answer once connected
+ANSWER_TIMEOUT_S = 30.0  # a replica answers between two frames; only a hung one takes this long
 
 
 def add_graph_argument(parser: argparse.ArgumentParser, positional: bool = False) -> None:
@@ -25,17 +31,11 @@ def add_graph_argument(parser: argparse.ArgumentParser, positional: bool = False
         parser.add_argument("--graph", default=str(DEFAULT_GRAPH), help="graph file (default: the built-in graph.yaml)")
 
 
-def parse_sets(sets: list[str]) -> dict[str, dict[str, Any]]:
-    overrides: dict[str, dict[str, Any]] = defaultdict(dict)
-    for text in sets:
-        op, param, value = parse_assignment(text)
-        overrides[op][param] = value
-    return dict(overrides)
-
-
 def load_graph_or_exit(path: str, sets: list[str] | None = None, local: bool = False) -> Graph | None:
     """The validated graph with `--set` overrides applied, or None after printing every problem.
     `local`: the whole graph runs here, so also check the interpreters and TLS files it names."""
+    from umad_common.graph import load_graph, missing_local_files
+
     try:
         graph = load_graph(path)
         overrides = parse_sets(sets or [])
@@ -50,27 +50,80 @@ def load_graph_or_exit(path: str, sets: list[str] | None = None, local: bool = F
 
 
 def add_connect_argument(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--connect", default=None, help="hub endpoint (default: the graph's `hub`)")
+    parser.add_argument(
+        "--connect", default=None, help="hub endpoint (default: the graph file's `hub`, else the default hub)"
+    )
 
 
-def connect_to_running_graph(graph: Graph, connect: str | None, wanted: set[str] | None = None):
-    """A session on the running graph's hub and the operators live there, or None after saying that
-    no hub answered: commands to a graph that is not running must fail fast, not hang. Liveliness
-    replies right after connecting can be incomplete, so a missing `wanted` operator is asked for
-    again before it counts as absent."""
-    from umad_common.bus import Keys, live_replicas, open_client
+def add_running_graph_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--graph",
+        default=None,
+        help="graph file: picks the running graph by its name and hub; needed only to start an operator "
+        "the running graph's own file does not have (default: whichever graph runs on the hub)",
+    )
+    add_connect_argument(parser)
 
-    hub = connect or graph.spec.hub
-    session = open_client(hub, graph.tls_config(), timeout_s=CONNECT_TIMEOUT_S)
+
+@dataclass
+class RunningGraph:
+    """A session on the hub of a running graph and what its launcher says it runs."""
+
+    session: Any  # zenoh.Session, imported late so `umad --help` stays fast
+    name: str
+    graph_file: str
+    operators: list[str]
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def connect_to_running_graph(graph_file: str | None, connect: str | None) -> RunningGraph | None:
+    """The graph running on the hub (`connect`, else the graph file's hub, else the default one),
+    or None after saying why not: no hub there, no graph on it, or several and none named."""
+    from umad_common.bus import DEFAULT_HUB, Keys, ask, open_client
+
+    name, hub, tls = None, DEFAULT_HUB, None
+    if graph_file:
+        from umad_common.graph import graph_address  # reads the file; imports no operator
+
+        name, hub, tls = graph_address(graph_file)
+    hub = connect or hub
+    session = open_client(hub, tls, timeout_s=CONNECT_TIMEOUT_S, retry=False)
     if session is None:
-        print(
-            f"no hub at {hub} within {CONNECT_TIMEOUT_S:.0f}s: is the graph running (`umad launch`)?", file=sys.stderr
-        )
+        print(f"no hub at {hub}: is the graph running (`umad launch`)?", file=sys.stderr)
         return None
-    live: set[str] = set()
-    for attempt in range(LIVELINESS_ATTEMPTS):
-        time.sleep(0.3 * (attempt + 1))
-        live |= {op for op, _ in live_replicas(session, Keys(graph.name))}
-        if live and (wanted is None or wanted <= live):
-            break
-    return session, live
+    graphs = {info["name"]: info for info in ask(session, Keys.ALL_GRAPHS, {}, CONNECT_TIMEOUT_S)}
+    chosen = graphs.get(name) if name else (next(iter(graphs.values())) if len(graphs) == 1 else None)
+    if chosen is None:
+        session.close()
+        if not graphs:
+            print(f"no graph runs on the hub at {hub} (its launcher did not answer)", file=sys.stderr)
+        elif name:
+            print(f"graph {name!r} does not run on the hub at {hub}; running there: {sorted(graphs)}", file=sys.stderr)
+        else:
+            print(f"several graphs run on the hub at {hub}: {sorted(graphs)}; pick one with --graph", file=sys.stderr)
+        return None
+    return RunningGraph(session, chosen["name"], chosen["graph"], chosen["operators"])
+
+
+def report(target: str, answers: list[dict], running: RunningGraph) -> bool:
+    """Print what each replica (or the launcher) answered; True when every answer says applied."""
+    if not answers:
+        if target in running.operators:
+            print(f"{target}: no replica answered within {ANSWER_TIMEOUT_S:.0f}s", file=sys.stderr)
+        else:
+            ops = ", ".join(running.operators)
+            print(f"{target}: no such operator in the running graph {running.name!r} (running: {ops})", file=sys.stderr)
+        return False
+    applied = True
+    for ans in answers:
+        who = f"{ans['op']}.{ans['replica']}" if "replica" in ans else target
+        detail = ans.get("message") or ans.get("reason") or ""
+        line = f"{who}: {ans['status']}" + (f": {detail}" if detail else "")
+        if ans["status"] in ("applied", "stopping"):
+            print(line)
+        else:
+            applied = False
+            print(line, file=sys.stderr)
+    return applied

@@ -1,56 +1,44 @@
 """`umad op start ID` / `umad op stop ID`: change which operators a running graph has.
 
-Both talk to the launcher over its control key; `start` re-reads the graph file, so an operator added
-to the file after launch can be started (hot swap). Fusion and other wildcard consumers use a new
-producer from the next complete frame on.
+Both ask the launcher of the graph running on the hub, which answers with what it did. `start`
+reads the launched graph file again, so an operator added to it after launch can be started (hot
+swap); `--graph FILE` starts an operator from another file. Fusion and other wildcard consumers use
+a new producer from the next complete frame on.
 """
 
 from __future__ import annotations
 
-import json
 import sys
-import time
 from pathlib import Path
 
 from umad_common.commands.common import (
-    add_connect_argument,
-    add_graph_argument,
+    ANSWER_TIMEOUT_S,
+    add_running_graph_arguments,
     connect_to_running_graph,
-    load_graph_or_exit,
+    report,
 )
 
 
 def add_arguments(parser):
-    parser.add_argument("id", help="operator id in the graph file")
-    add_graph_argument(parser)
-    add_connect_argument(parser)
+    parser.add_argument("id", help="operator id")
+    add_running_graph_arguments(parser)
 
 
 def run(args) -> int:
-    from umad_common.bus import Keys
+    from umad_common.bus import Keys, ask
 
-    graph = load_graph_or_exit(args.graph)
-    if graph is None:
-        return 1
     action = args._words[1]
-    if action == "start" and args.id not in {o.id for o in graph.spec.operators}:
-        print(f"{args.graph}: no operator {args.id!r} to start", file=sys.stderr)
+    running = connect_to_running_graph(args.graph, args.connect)
+    if running is None:
         return 1
-    connected = connect_to_running_graph(graph, args.connect, wanted={args.id} if action == "stop" else None)
-    if connected is None:
-        return 1
-    session, live = connected
+    command = {action: args.id}
+    if action == "start" and args.graph:
+        command["graph"] = str(Path(args.graph).resolve())  # the launcher may run in another folder
     try:
-        if not live:
-            print(f"no operator of graph {graph.name!r} is live: nothing to {action}", file=sys.stderr)
-            return 1
-        if action == "stop" and args.id not in live:
-            print(f"{args.id}: not running in graph {graph.name!r} (live: {sorted(live)})", file=sys.stderr)
-            return 1
-        graph_file = str(Path(args.graph).resolve())  # the launcher may run in another folder
-        session.put(Keys(graph.name).control("_launcher"), json.dumps({action: args.id, "graph": graph_file}))
-        time.sleep(0.3)
+        answers = ask(running.session, Keys(running.name).launcher, command, ANSWER_TIMEOUT_S)
     finally:
-        session.close()
-    print(f"asked the launcher to {action} {args.id}")
-    return 0
+        running.close()
+    if not answers:
+        print(f"the launcher of graph {running.name!r} did not answer within {ANSWER_TIMEOUT_S:.0f}s", file=sys.stderr)
+        return 1
+    return 0 if report(args.id, answers, running) else 1

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import sys
 
+from umad_common.assignments import GraphError
 from umad_common.commands.common import add_connect_argument, add_graph_argument, load_graph_or_exit
-from umad_common.graph import GraphError
 
 
 def add_arguments(parser):
@@ -27,4 +27,4 @@ def run(args) -> int:
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return 1
-    return run_operator(graph, args.id, args.replica, args.connect)
+    run_operator(graph, args.id, args.replica, args.connect)  # ends the process

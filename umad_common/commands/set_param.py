@@ -1,54 +1,48 @@
-"""`umad set OP.PARAM=VALUE ...`: change parameters of a running operator from its next frame on."""
+"""`umad set OP.PARAM=VALUE ...`: change parameters of a running operator from its next frame on.
+
+Each replica answers with what it did: applied, or refused with the reason (a value the schema
+does not accept, a weight file that does not load); the command exits non-zero unless every
+replica of every operator named applied its change.
+"""
 
 from __future__ import annotations
 
-import json
 import sys
-import time
 
+from umad_common.assignments import GraphError, parse_sets
 from umad_common.commands.common import (
-    add_connect_argument,
-    add_graph_argument,
+    ANSWER_TIMEOUT_S,
+    add_running_graph_arguments,
     connect_to_running_graph,
-    load_graph_or_exit,
-    parse_sets,
+    report,
 )
-from umad_common.graph import GraphError
 
 
 def add_arguments(parser):
     parser.add_argument("assignments", nargs="+", metavar="OP.PARAM=VALUE", help="e.g. fusion.weights.ssim=0.5")
-    add_graph_argument(parser)
-    add_connect_argument(parser)
+    add_running_graph_arguments(parser)
 
 
 def run(args) -> int:
-    from umad_common.bus import Keys
+    from umad_common.bus import Keys, ask
 
-    graph = load_graph_or_exit(args.graph)
-    if graph is None:
-        return 1
     try:
         overrides = parse_sets(args.assignments)
-        graph.with_params(overrides)  # validate against each operator's schema before sending
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return 1
-    connected = connect_to_running_graph(graph, args.connect, wanted=set(overrides))
-    if connected is None:
+    running = connect_to_running_graph(args.graph, args.connect)
+    if running is None:
         return 1
-    session, live = connected
-    keys = Keys(graph.name)
-    missing = []
+    keys = Keys(running.name)
+    applied = True
     try:
         for op, params in overrides.items():
-            if op not in live:
-                missing.append(op)
-                print(f"{op}: no live replica in graph {graph.name!r}; not changed", file=sys.stderr)
-                continue
-            session.put(keys.control(op), json.dumps({"set": params}))
-            print(f"{op}: {params} (from its next frame on)")
-        time.sleep(0.3)
+            answers = ask(running.session, keys.control(op), {"set": params}, ANSWER_TIMEOUT_S)
+            for ans in answers:
+                if ans["status"] == "applied":
+                    ans["message"] = f"{params} (from its next frame on)"
+            applied = report(op, answers, running) and applied
     finally:
-        session.close()
-    return 1 if missing else 0
+        running.close()
+    return 0 if applied else 1

@@ -93,7 +93,7 @@ class McapRecorder:
             self._writer.add_message(channel, time.time_ns(), json.dumps(obj).encode(), stamp_ns, 0)
 
     def _viz_worker(self) -> None:
-        from replay.foxglove import COMPRESSED_IMAGE_SCHEMA, compressed_image, views
+        from umad_common.viz.foxglove import COMPRESSED_IMAGE_SCHEMA, compressed_image, views
 
         while True:
             item = self._viz_queue.get()

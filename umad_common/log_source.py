@@ -7,8 +7,8 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
-from replay.log import LogError, read_log
 from umad_common.bus import Keys
+from umad_common.mcap_log import LogError, read_log
 from umad_common.messages import MessageError, decode
 from umad_common.operator import Context, Source, SourceFrame
 
