@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-from umad_common.graph import merge_params, parse_assignment
+from umad_common.assignments import merge_params, parse_assignment
 from umad_common.operator import load_operator_class
 
 LABEL_RESIZE = "nearest"  # labels are resized to the score maps' size, never the maps to the labels
@@ -116,16 +116,17 @@ def perceptual_network(params: dict[str, Any], resolve) -> dict[str, Any]:
 def segmenter_record(params: dict[str, Any], resolve) -> dict[str, Any]:
     """A segmenter's method and, where the method loads one, its model file and training record."""
     method = params.get("method")
+    options = params.get("options") or {}
     if method == "sam":
         return {
             "method": method,
-            "network": f"SAM {params.get('sam_model')}",
-            "file": str(resolve(params["sam_checkpoint"])),
+            "network": f"SAM {options.get('model', 'vit_b')}",
+            "file": str(resolve(options["checkpoint"])),
         }
-    if method == "kmeans" and params.get("kmeans_features") == "feature_net":
+    if method == "kmeans" and options.get("features") == "feature_net":
         return {
             "method": method,
             "network": "label-free feature net",
-            **model_record(resolve(params["kmeans_feature_net"])),
+            **model_record(resolve(options["feature_net"])),
         }
     return {"method": method}

@@ -24,8 +24,8 @@ import numpy as np
 from tqdm import tqdm
 
 from replay.frames import FrameRecord, LogStats, frames_from_log
-from replay.log import read_metadata
 from replay.protocol import run_protocol
+from umad_common.mcap_log import read_metadata
 from umad_common.metrics.components import ComponentMetrics
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import MAX_CHUNK_ELEMENTS, fuse, only_the_best, paint_masks, refine, resize_nearest

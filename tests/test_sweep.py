@@ -127,7 +127,7 @@ operators:
   - id: seg_sam
     kind: segmenter
     inputs: {frame: world_model/frame, truth: replayer/truth}
-    params: {method: sam, sam_checkpoint: /weights/sam_vit_b.pth}
+    params: {method: sam, options: {checkpoint: /weights/sam_vit_b.pth}}
 """
 
 

@@ -79,7 +79,7 @@ def test_observe_and_imagine_shapes():
 
 def test_config_rejects_image_size_not_divisible():
     with pytest.raises(ValueError, match="must be divisible by"):
-        WorldModelConfig(image_height=100)
+        WorldModelConfig(image_height=102)
 
 
 def test_same_seed_same_model_and_samples():
