@@ -125,6 +125,7 @@ class WorldModelPredictor(Operator):
         obs, target, action = self.observation(frame)
         n = self.params.horizon
         h, w = self.config.image_height, self.config.image_width
+        recon = np.zeros((h, w, 3), np.float32)  # stays blank on a frame nobody scores: nothing is drawn
         preds = np.zeros((n, h, w, 3), np.float32)
         valid = np.zeros(n, np.uint8)
         model_step = frame.seq % self.params.stride == 0
@@ -137,8 +138,7 @@ class WorldModelPredictor(Operator):
             for origin in self.rollouts:
                 h_pred = self.model.transition(origin, self.pending_action)
                 advanced.append(State(h_pred, self.model.prior(h_pred)[0]))
-            recon = np.zeros((h, w, 3), np.float32)
-            if scored:  # a frame nobody scores only moves the state on: nothing to draw
+            if scored:
                 batch = [posterior, *advanced]
                 states = State(torch.cat([s.h for s in batch]), torch.cat([s.z for s in batch]))
                 images = self.model.decode(states).permute(0, 2, 3, 1).numpy()
@@ -151,8 +151,6 @@ class WorldModelPredictor(Operator):
             self.steps += 1
         elif scored:
             recon = self.model.decode(posterior)[0].permute(1, 2, 0).numpy()
-        else:
-            recon = np.zeros((h, w, 3), np.float32)
         meta = {
             "model": self.model_path.name,
             "model_step": bool(model_step),
