@@ -23,6 +23,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("train", "world-model"): ("umad_common.commands.train_world_model", "train the world model on normal drives"),
     ("train", "features"): ("umad_common.commands.train_features", "train the label-free perceptual feature net"),
     ("train", "mnad"): ("umad_common.commands.train_mnad", "train the MNAD baseline"),
+    ("train", "segmenter"): ("umad_common.commands.train_segmenter", "train the label-free segment net"),
     ("test", "world-model"): ("umad_common.commands.test_world_model", "held-out PSNR and anomaly/road error ratio"),
     ("calibrate",): ("umad_common.commands.calibrate", "fit per-metric normalisation on normal frames"),
     ("eval",): ("umad_common.commands.evaluate", "run the full UMAD evaluation and write the report"),

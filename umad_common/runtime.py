@@ -217,8 +217,9 @@ class OperatorRuntime:
 
     def _apply_control(self, payload: bytes) -> dict[str, str]:
         """Stop, resend or a parameter change; returns the outcome the asking command prints. A
-        change that fails validation, or that the operator refuses (a weight file that does not
-        load), is logged and counted; the old parameters stay."""
+        change that fails validation, needs an input the graph does not wire to this operator, or
+        that the operator refuses (a weight file that does not load), is logged and counted; the old
+        parameters stay."""
         try:
             command = json.loads(payload)
             if not isinstance(command, dict):
@@ -237,6 +238,9 @@ class OperatorRuntime:
             params = old.model_dump()
             merge_params(params, updates)
             new = self.cls.validate_params(params)
+            unwired = self.cls.wiring_problems(new, set(self.spec.inputs))
+            if unwired:  # e.g. a segmenter method that reads an input this operator is not wired to
+                raise ValueError("; ".join(unwired))
         except (ValueError, KeyError, TypeError, ValidationError, GraphError) as exc:
             self.stats.errors += 1
             self.log.error("rejected parameter change %r: %s", payload[:200], exc)

@@ -4,9 +4,10 @@
     masks = method(image, frame)        # (K, h, w) bool; image (h, w, 3) float32 in [0, 1]
 
 Built-in methods (`SEGMENTERS`): `gt` (ground-truth instances + stuff regions, the upper-bound
-ablation), `felzenszwalb`, `slic`, `kmeans` (image only, no labels), `geometry` (lidar objects
-grown into image regions, another method's segments elsewhere) and `sam` (segment-anything, in
-its own environment). A method not in `SEGMENTERS` loads by import path:
+ablation), `felzenszwalb`, `slic`, `kmeans` (image only, no labels), `learned` (clusters of a net trained
+without labels on the domain's normal drives), `geometry` (lidar objects grown into image regions,
+another method's segments elsewhere), `geometry_learned` (geometry with the learned segments) and
+`sam` (segment-anything, in its own environment). A method not in `SEGMENTERS` loads by import path:
 `build_segmenter("mypkg.mod:MySegmenter", {...})`, where `MySegmenter` subclasses `SegmenterMethod`.
 `operators/segmenter.py` runs one per frame; `umad bench segmenters` measures them all.
 """
@@ -27,11 +28,12 @@ from umad_common.segmentation.base import (
 )
 from umad_common.segmentation.geometry import Geometry, SensorRig
 from umad_common.segmentation.image import Felzenszwalb, KMeansSegments, Slic
+from umad_common.segmentation.learned import GeometryLearned, Learned
 from umad_common.segmentation.sam import Sam
 from umad_common.segmentation.truth import GroundTruth, gt_masks
 
 SEGMENTERS: dict[str, type[SegmenterMethod]] = {
-    cls.name: cls for cls in (GroundTruth, Felzenszwalb, Slic, KMeansSegments, Geometry, Sam)
+    cls.name: cls for cls in (GroundTruth, Felzenszwalb, Slic, KMeansSegments, Geometry, Learned, GeometryLearned, Sam)
 }
 
 
@@ -55,8 +57,10 @@ __all__ = [
     "SEGMENTERS",
     "Felzenszwalb",
     "Geometry",
+    "GeometryLearned",
     "GroundTruth",
     "KMeansSegments",
+    "Learned",
     "Sam",
     "SegmenterInputError",
     "SegmenterMethod",

@@ -46,7 +46,8 @@ class FeatureTrainingConfig:
 
 def load_normal_rgb(data: Path, cfg: FeatureTrainingConfig) -> tuple[np.ndarray, list[str]]:
     """(N, h, w, 3) uint8 camera frames of the normal training drives, resized to `cfg.size` and
-    spread evenly over them, and the names of the held-out drives."""
+    spread evenly over them (at most `cfg.max_frames`, the last `cfg.holdout` drives left out), and
+    the names of the held-out drives. The segment net's training config has the same three fields."""
     from umad_common.datasets.anovox import find_scenarios, label_free_scenario, normal_root
 
     root = normal_root(data)
