@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
 import os
+import shlex
 import socket
 import subprocess
 import sys
@@ -54,6 +56,17 @@ class DrainedUmad:
         self.proc.wait(timeout=timeout)
         self.reader.join(timeout=10)
         return "".join(self.lines)
+
+
+def readme_recipe(verb: str, command) -> tuple[argparse.Namespace, list[str]]:
+    """The README's `umad train VERB ...` line parsed as the CLI parses it (with the command module's
+    `add_arguments`), and its words: what the recipe tests compare with a shipped model's record."""
+    readme = (REPO / "README.md").read_text().splitlines()
+    line = next(line for line in readme if line.startswith(f"umad train {verb} "))
+    words = shlex.split(line.split("#")[0])
+    parser = argparse.ArgumentParser()
+    command.add_arguments(parser)
+    return parser.parse_args(words[3:]), words
 
 
 @pytest.fixture

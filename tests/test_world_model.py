@@ -373,20 +373,14 @@ def test_test_world_model_command_names_data_it_cannot_score(tmp_path, weights):
 def test_readme_recipe_rebuilds_the_shipped_world_model():
     """The README's `umad train world-model` line, parsed as the CLI parses it, asks for exactly the
     configs, epochs, seed and threads the shipped model's JSON records, and is the command it records."""
-    import argparse
     import shlex
     from dataclasses import asdict
 
-    from tests.conftest import REPO
+    from tests.conftest import readme_recipe
     from umad_common import ASSETS
     from umad_common.commands import train_world_model
 
-    readme = (REPO / "README.md").read_text().splitlines()
-    line = next(line for line in readme if line.startswith("umad train world-model "))
-    words = shlex.split(line.split("#")[0])
-    parser = argparse.ArgumentParser()
-    train_world_model.add_arguments(parser)
-    args = parser.parse_args(words[3:])
+    args, words = readme_recipe("world-model", train_world_model)
     model_config, train, epochs, seed = train_world_model.configs_of(args)
     shipped = json.loads((ASSETS / "world_model.json").read_text())
     assert model_config.to_dict() == shipped["config"]

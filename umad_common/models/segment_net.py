@@ -34,13 +34,11 @@ class SegmentNetConfig:
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "config") -> SegmentNetConfig:
+        """From a saved record's config (JSON lists back to tuples); WeightsError names the file."""
         try:
-            cfg = cls(**data)
+            cfg = cls(**{key: tuple(value) if isinstance(value, list) else value for key, value in data.items()})
         except TypeError as exc:
             raise WeightsError(f"{source}: not a segment net config ({exc})") from None
-        cfg.widths = tuple(int(w) for w in cfg.widths)
-        cfg.mean = tuple(float(v) for v in cfg.mean)
-        cfg.std = tuple(float(v) for v in cfg.std)
         if len(cfg.widths) != 2 or len(cfg.mean) != 3 or len(cfg.std) != 3 or cfg.clusters < 2:
             raise WeightsError(f"{source}: expected 2 widths, 3 mean/std values and >= 2 clusters, got {data}")
         return cfg
