@@ -8,6 +8,8 @@ smaller than `min_area` absorbed by their nearest large region; the masks tile t
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
@@ -74,9 +76,14 @@ class GeometryLearned(Geometry):
     learned segments elsewhere."""
 
     name = "geometry_learned"
-    tuning_grid = {"rest_options": [{"min_area": a} for a in Learned.tuning_grid["min_area"]]}
+    tuning_grid = {"rest_options": [{"min_area": area} for area in (48, 128, 256, 512)]}
 
     class Params(Geometry.Params):
         rest: str = Field(
             "learned", description="the method whose segments cover the rest of the frame and grow the objects"
+        )
+        rest_options: dict[str, Any] = Field(
+            default_factory=lambda: {"min_area": 256},
+            description="the learned segments' options; min_area larger than `learned`'s own, as the lidar finds "
+            f"the objects; {TUNED}",
         )
