@@ -76,7 +76,7 @@ class SegmentNet(nn.Module):
         self.register_buffer("std", torch.tensor(cfg.std).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, rgb: torch.Tensor) -> torch.Tensor:
-        """(B, 3, H, W) in [0, 1] -> (B, embedding, H/2, W/2) unit-length embeddings (H, W even)."""
+        """(B, 3, H, W) in [0, 1] -> (B, embedding, ⌈H/2⌉, ⌈W/2⌉) unit-length embeddings."""
         fine = self.fine((rgb - self.mean) / self.std)  # (B, w0, H/2, W/2)
         coarse = self.coarse(fine)  # (B, w1, H/4, W/4)
         up = F.interpolate(self.lateral(coarse), size=fine.shape[2:], mode="bilinear", align_corners=False)

@@ -62,9 +62,6 @@ class Learned(SegmenterMethod):
 
     def __call__(self, image: np.ndarray, frame: Frame) -> np.ndarray:
         torch = self.torch
-        h, w = image.shape[:2]
-        if h % 2 or w % 2:
-            raise ValueError(f"segmenter {frame.frame_id}: method 'learned' needs an even image size, got {h}x{w}")
         batch = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None]  # (1, 3, h, w)
         clusters = self.net.cluster_ids(batch)[0].numpy()  # (h, w)
         regions = merge_small_regions(connected_regions(clusters), self.params.min_area)
