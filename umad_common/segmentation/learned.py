@@ -73,14 +73,14 @@ class GeometryLearned(Geometry):
     learned segments elsewhere."""
 
     name = "geometry_learned"
-    tuning_grid = {"rest_options": [{"min_area": area} for area in (48, 128, 256, 512)]}
+    tuning_grid = {"rest_options": [{"min_area": area} for area in (256, 512, 1024, 2048)]}
 
     class Params(Geometry.Params):
         rest: str = Field(
             "learned", description="the method whose segments cover the rest of the frame and grow the objects"
         )
         rest_options: dict[str, Any] = Field(
-            default_factory=lambda: {"min_area": 256},
-            description="the learned segments' options; min_area larger than `learned`'s own, as the lidar finds "
-            f"the objects; {TUNED}",
+            default_factory=lambda: {"min_area": 1024},
+            description="the learned segments' options; min_area far larger than `learned`'s own: the lidar finds "
+            f"the objects, the rest only needs large normal regions to average over; {TUNED}",
         )
