@@ -53,7 +53,7 @@ class TrainConfig:
     #   its mean; the mean trains faster and sharper, the KL still prices every nat it moves from the prior
     prediction_steps: int = 3  # open-loop prior rollout per window, ending at its last frame, whose decoded
     #   frames are trained like reconstructions (the predictions x̂_{t|t-k} the temporal map compares)
-    prediction_weight: float = 0.5  # weight of that prediction loss next to the reconstruction loss
+    prediction_weight: float = 1.0  # weight of that prediction loss next to the reconstruction loss
     ssim_weight: float = 0.2  # weight of the 1 - SSIM loss (structure: edges, texture) next to the L1
     holdout: int = 1  # last normal drives (sorted) kept out of training for evaluation
     bf16: bool = True  # bfloat16 autocast and channels-last convolutions (2-3x faster on CPUs with
