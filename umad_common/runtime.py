@@ -117,6 +117,7 @@ class OperatorRuntime:
         )
         self._subscribers: list[Any] = []
         self._last_stats = 0.0
+        self._cpu_at_ready = time.process_time()  # reset when the loop starts: start-up is no frame's cost
         self._last_bad_log = 0.0
         self.is_sink = op_id in graph.sinks()  # sinks ack frames end to end
         self.live = self._live_mode()
@@ -132,7 +133,9 @@ class OperatorRuntime:
     def _subscribe_inputs(self) -> None:
         for port in self.spec.inputs:
             for source in self.spec.sources_of(port):
-                self.subscribe(self.keys.pattern(source), lambda s, port=port: self.data_q.put((port, s)))
+                self.subscribe(
+                    self.keys.pattern(source), lambda s, port=port: self.data_q.put((port, s, time.time()))
+                )
 
     def _subscribe_service(self) -> None:
         control = self.keys.control(self.op_id)
@@ -290,6 +293,8 @@ class OperatorRuntime:
         if force or now - self._last_stats >= STATS_INTERVAL_S:
             self._last_stats = now
             self.stats.dropped = self.joiner.dropped
+            self.stats.joined, self.stats.wait_s = self.joiner.joined, self.joiner.wait_s
+            self.stats.process_cpu_s = time.process_time() - self._cpu_at_ready
             snap = self.stats.snapshot(self.data_q.qsize())
             self.stats_pub.put(json.dumps({"op": self.op_id, "replica": self.replica_id, **snap}).encode())
 
@@ -302,6 +307,13 @@ class OperatorRuntime:
         elif now - self._last_bad_log >= BAD_MESSAGE_LOG_INTERVAL_S:
             self.log.warning("%d bad messages so far; latest on %s: %s", self.stats.bad_messages, key, exc)
             self._last_bad_log = now
+
+    def _count_arrival(self, sample: zenoh.Sample, arrived: float) -> None:
+        """A message's transport (producer's put to our subscriber) and queueing (subscriber to us)."""
+        self.stats.messages_in += 1
+        self.stats.queue_s += time.time() - arrived
+        if sample.timestamp is not None:  # same clock on one host; NTP-synchronised hosts otherwise
+            self.stats.transport_s += max(0.0, arrived - sample.timestamp.get_time_as_ntp64().as_secs_f64())
 
     # -- publishing ---------------------------------------------------------------------------------
 
@@ -319,9 +331,10 @@ class OperatorRuntime:
         return payloads
 
     def publish(self, payloads: list[tuple[str, bytes]], count: bool = True) -> None:
-        """Put one frame's payloads; `count=False` for a retransmission, which is no new frame."""
+        """Put one frame's payloads; `count=False` for a retransmission, which is no new frame. Each
+        carries the put's time (a Zenoh timestamp, not part of the payload) for `transport_ms`."""
         for port, payload in payloads:
-            self.publishers[port].put(payload)
+            self.publishers[port].put(payload, timestamp=self.session.new_timestamp())
         if count:
             self.stats.frames_out += 1
 
@@ -339,6 +352,7 @@ class OperatorRuntime:
         if not isinstance(self.operator, Source):
             self._subscribe_inputs()
         token = self.session.liveliness().declare_token(self.keys.live(self.op_id, self.replica_id))
+        self._cpu_at_ready = time.process_time()
         try:
             if isinstance(self.operator, Source):
                 SourceDriver(self).run()
@@ -374,9 +388,11 @@ class OperatorRuntime:
             elif skipped and not self.cls.ordered:
                 payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
             else:
-                start = time.perf_counter()
+                start, cpu_start = time.perf_counter(), time.process_time()
                 try:
                     outputs = self.operator.process(frame)
+                    self.stats.cpu_s += time.process_time() - cpu_start
+                    self.stats.computed += 1
                     if skipped:  # an in-order operator saw the frame for its state; nobody scores it
                         payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
                     else:
@@ -430,10 +446,11 @@ class OperatorRuntime:
             self.publish_stats()
             deadline_s = self._deadline_s()
             try:
-                port, sample = self.data_q.get(timeout=0.05)
+                port, sample, arrived = self.data_q.get(timeout=0.05)
             except queue.Empty:
                 port = None
             if port is not None:
+                self._count_arrival(sample, arrived)
                 try:
                     msg = decode(sample.payload.to_bytes())
                 except MessageError as exc:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import queue
 import time
 from collections import defaultdict
+from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
 import msgpack
@@ -58,8 +59,10 @@ class SourceDriver:
         count = 0
         last_stamp = 0
         next_due = started = time.monotonic()
-        for sf in self.source.frames():
-            if rt.shutdown.is_set() or (rt.max_frames is not None and sent >= rt.max_frames):
+        frames = self.source.frames()
+        while not rt.shutdown.is_set() and (rt.max_frames is None or sent < rt.max_frames):
+            sf = self._next_frame(frames)
+            if sf is None:
                 break
             if current is not None and sf.run != current:
                 self._end_run(current, count, last_stamp)
@@ -81,6 +84,15 @@ class SourceDriver:
         rt.stats.busy_s = time.monotonic() - started
         rt.publish_stats(force=True)
         rt.log.info("source finished: %d frames sent, %d retransmits", sent, rt.stats.retransmits)
+
+    def _next_frame(self, frames: Iterator[SourceFrame]) -> SourceFrame | None:
+        """The source's next frame, its reading counted as the source's own work (`cpu_ms`)."""
+        cpu_start = time.process_time()
+        sf = next(frames, None)
+        if sf is not None:
+            self.rt.stats.cpu_s += time.process_time() - cpu_start
+            self.rt.stats.computed += 1
+        return sf
 
     def _wait_for_graph(self) -> None:
         """Frames sent before every operator subscribed would be lost to them: wait for all tokens."""
