@@ -37,7 +37,7 @@ import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable
-from typing import Any, NoReturn
+from typing import Any, NamedTuple, NoReturn
 
 import msgpack
 import zenoh
@@ -60,6 +60,24 @@ BAD_MESSAGE_LOG_FIRST = 10  # malformed messages logged one by one; later ones a
 BAD_MESSAGE_LOG_INTERVAL_S = 5.0
 REWIND_RETRY_S = 10.0
 EXIT_CONFIG = 3  # an operator that exits with this failed on its configuration: restarting cannot help
+
+
+class Received(NamedTuple):
+    """One input message as the subscriber took it: its bytes are copied out of Zenoh's shared
+    memory at once, so a busy operator's queue never holds the publisher's shared-memory pool (a
+    full pool sends every later message the slow way, through the hub's socket)."""
+
+    port: str
+    key: str
+    payload: bytes
+    sent: float | None  # the producer's put, from the sample's timestamp (wall clock, seconds)
+    arrived: float  # wall clock
+
+    @classmethod
+    def take(cls, port: str, sample: zenoh.Sample) -> Received:
+        stamp = sample.timestamp
+        sent = None if stamp is None else stamp.get_time_as_ntp64().as_secs_f64()
+        return cls(port, str(sample.key_expr), sample.payload.to_bytes(), sent, time.time())
 
 
 class OperatorRuntime:
@@ -133,9 +151,7 @@ class OperatorRuntime:
     def _subscribe_inputs(self) -> None:
         for port in self.spec.inputs:
             for source in self.spec.sources_of(port):
-                self.subscribe(
-                    self.keys.pattern(source), lambda s, port=port: self.data_q.put((port, s, time.time()))
-                )
+                self.subscribe(self.keys.pattern(source), lambda s, port=port: self.data_q.put(Received.take(port, s)))
 
     def _subscribe_service(self) -> None:
         control = self.keys.control(self.op_id)
@@ -308,12 +324,12 @@ class OperatorRuntime:
             self.log.warning("%d bad messages so far; latest on %s: %s", self.stats.bad_messages, key, exc)
             self._last_bad_log = now
 
-    def _count_arrival(self, sample: zenoh.Sample, arrived: float) -> None:
+    def _count_arrival(self, received: Received) -> None:
         """A message's transport (producer's put to our subscriber) and queueing (subscriber to us)."""
         self.stats.messages_in += 1
-        self.stats.queue_s += time.time() - arrived
-        if sample.timestamp is not None:  # same clock on one host; NTP-synchronised hosts otherwise
-            self.stats.transport_s += max(0.0, arrived - sample.timestamp.get_time_as_ntp64().as_secs_f64())
+        self.stats.queue_s += time.time() - received.arrived
+        if received.sent is not None:
+            self.stats.transport_s += max(0.0, received.arrived - received.sent)
 
     # -- publishing ---------------------------------------------------------------------------------
 
@@ -446,19 +462,19 @@ class OperatorRuntime:
             self.publish_stats()
             deadline_s = self._deadline_s()
             try:
-                port, sample, arrived = self.data_q.get(timeout=0.05)
+                received = self.data_q.get(timeout=0.05)
             except queue.Empty:
-                port = None
-            if port is not None:
-                self._count_arrival(sample, arrived)
+                received = None
+            if received is not None:
+                self._count_arrival(received)
                 try:
-                    msg = decode(sample.payload.to_bytes())
+                    msg = decode(received.payload)
                 except MessageError as exc:
                     self.stats.bad_messages += 1
-                    self._warn_bad_message(str(sample.key_expr), exc)
+                    self._warn_bad_message(received.key, exc)
                     continue
                 key = (msg.run, msg.seq)
-                producer = self.keys.parse_data(str(sample.key_expr))[0]
+                producer = self.keys.parse_data(received.key)[0]
                 if msg.meta.get("eos"):
                     end_run(msg)
                     continue
@@ -472,7 +488,7 @@ class OperatorRuntime:
                     continue
                 if not self._owns(msg.seq):
                     continue
-                self.joiner.add(port, producer, msg)
+                self.joiner.add(received.port, producer, msg)
             elif not live_changed and not (deadline_s and self.joiner.pending):
                 continue
             for frame in self.joiner.pop_ready(self._routes()[0], deadline_s):
