@@ -56,6 +56,8 @@ from umad_common.source_driver import SourceDriver
 log = logging.getLogger("umad.runtime")
 
 STATS_INTERVAL_S = 1.0
+LIVE_JOIN_POLL_S = 0.05  # how often a live join with frames waiting checks their deadline
+IDLE_WAIT_S = 0.25  # an idle operator's sleep: the longest a stop signal waits to be seen
 BAD_MESSAGE_LOG_FIRST = 10  # malformed messages logged one by one; later ones are summarised
 BAD_MESSAGE_LOG_INTERVAL_S = 5.0
 REWIND_RETRY_S = 10.0
@@ -155,18 +157,27 @@ class OperatorRuntime:
 
     def _subscribe_service(self) -> None:
         control = self.keys.control(self.op_id)
-        self.subscribe(control, lambda s: self.ctl_q.put(("ctl", (s.payload.to_bytes(), None))))  # e.g. resend
+        self.subscribe(control, lambda s: self._service_event("ctl", (s.payload.to_bytes(), None)))  # e.g. resend
         self._subscribers.append(
             self.session.declare_queryable(
-                control, lambda q: self.ctl_q.put(("ctl", (q.payload.to_bytes() if q.payload else b"", q)))
+                control, lambda q: self._service_event("ctl", (q.payload.to_bytes() if q.payload else b"", q))
             )
         )
-        self.subscribe(self.keys.left, lambda s: self.ctl_q.put(("left", s)))
+        self.subscribe(self.keys.left, lambda s: self._service_event("left", s))
         self._subscribers.append(
             self.session.liveliness().declare_subscriber(
-                self.keys.live_all, lambda s: self.ctl_q.put(("live", s)), history=True
+                self.keys.live_all, lambda s: self._service_event("live", s), history=True
             )
         )
+
+    def _service_event(self, kind: str, event: Any) -> None:
+        """Queue a command or membership change and wake the transform loop to apply it now: the
+        loop sleeps on its data queue and has nothing else to wake up for."""
+        self.ctl_q.put((kind, event))
+        try:
+            self.data_q.put_nowait(None)
+        except queue.Full:  # messages are waiting: the loop is awake
+            pass
 
     def _routes(self) -> tuple[dict[str, set[str]], list[str]]:
         """The producers each wildcard port waits for and this operator's sorted live replicas:
@@ -461,8 +472,10 @@ class OperatorRuntime:
             live_changed = self.handle_service()
             self.publish_stats()
             deadline_s = self._deadline_s()
-            try:
-                received = self.data_q.get(timeout=0.05)
+            try:  # messages and commands wake the loop; the timeout is for deadlines, stats and signals
+                received = self.data_q.get(
+                    timeout=LIVE_JOIN_POLL_S if deadline_s and self.joiner.pending else IDLE_WAIT_S
+                )
             except queue.Empty:
                 received = None
             if received is not None:

@@ -19,6 +19,7 @@ if TYPE_CHECKING:
     from umad_common.runtime import OperatorRuntime
 
 LIVE_WAIT_S = 60.0
+ACK_WAIT_S = 0.05  # a full window's wait for acks (an ack ends it at once): re-sends and commands wait this long
 
 
 class SourceDriver:
@@ -74,7 +75,7 @@ class SourceDriver:
                     self._service(min(0.01, max(0.0, next_due - time.monotonic())))
             else:
                 while len(self.inflight) >= self.pacing.window and not rt.shutdown.is_set():
-                    self._service(0.01)
+                    self._service(ACK_WAIT_S)
             self._send((sf.run, sf.seq), self._payloads(sf))
             sent += 1
             count += 1
@@ -159,6 +160,8 @@ class SourceDriver:
             except queue.Empty:
                 raw = None
         now = time.monotonic()
+        if not self.inflight or now - min(last for _, _, last in self.inflight.values()) <= self.pacing.ack_timeout_s:
+            return  # nothing can be due: the percentiles below cost more than this whole call
         timeout_s = max(self.pacing.ack_timeout_s, 3 * (self.e2e.percentiles_ms()["p99_ms"] or 0) / 1e3)
         for key, (payloads, first, last) in list(self.inflight.items()):
             if now - last > timeout_s and self.pacing.pacing == "realtime":
@@ -195,10 +198,10 @@ class SourceDriver:
         """Drain the run's frames, then send its end-of-run marker until every sink acked it."""
         rt = self.rt
         while self.inflight and not rt.shutdown.is_set():
-            self._service(0.01)
+            self._service(ACK_WAIT_S)
         markers = rt.markers(run, frames, stamp_ns, {"eos": True, "frames": frames})
         self.markers.add((run, frames))
         self._send((run, frames), markers)
         while self.inflight and not rt.shutdown.is_set():
-            self._service(0.01)
+            self._service(ACK_WAIT_S)
         rt.log.info("run %s: %d frames", run, frames)
