@@ -42,7 +42,7 @@ class Stats:
     as sums the snapshot turns into means per frame (per message for the bus's part):
 
     - `cpu_ms`: CPU time of the operator's own work (`process`, a source's reading of a frame);
-    - `runtime_cpu_ms`: the rest of the process's CPU since it got ready (decoding, encoding,
+    - `runtime_cpu_ms`: the rest of the process's CPU since its first frame (decoding, encoding,
       joining, acks, Zenoh's threads), per frame in: what the runtime and the bus cost;
     - `transport_ms`: a message's time from the producer's put to this replica's subscriber;
     - `queue_ms`: a message's time waiting for this replica to take it (the replica was busy);
@@ -62,7 +62,7 @@ class Stats:
     total_frames: int | None = None  # sources: frames the stream will have, when known
     computed: int = 0  # frames the operator's work ran on (not markers)
     cpu_s: float = 0.0
-    process_cpu_s: float = 0.0  # the process's CPU since it got ready, set at each snapshot
+    process_cpu_s: float = 0.0  # the process's CPU since its first frame, set at each snapshot
     messages_in: int = 0
     transport_s: float = 0.0
     queue_s: float = 0.0

@@ -137,7 +137,7 @@ class OperatorRuntime:
         )
         self._subscribers: list[Any] = []
         self._last_stats = 0.0
-        self._cpu_at_ready = time.process_time()  # reset when the loop starts: start-up is no frame's cost
+        self._cpu_from: float | None = None  # process CPU at the first frame (start-up is no frame's cost)
         self._last_bad_log = 0.0
         self.is_sink = op_id in graph.sinks()  # sinks ack frames end to end
         self.live = self._live_mode()
@@ -321,7 +321,8 @@ class OperatorRuntime:
             self._last_stats = now
             self.stats.dropped = self.joiner.dropped
             self.stats.joined, self.stats.wait_s = self.joiner.joined, self.joiner.wait_s
-            self.stats.process_cpu_s = time.process_time() - self._cpu_at_ready
+            if self._cpu_from is not None:
+                self.stats.process_cpu_s = time.process_time() - self._cpu_from
             snap = self.stats.snapshot(self.data_q.qsize())
             self.stats_pub.put(json.dumps({"op": self.op_id, "replica": self.replica_id, **snap}).encode())
 
@@ -335,8 +336,14 @@ class OperatorRuntime:
             self.log.warning("%d bad messages so far; latest on %s: %s", self.stats.bad_messages, key, exc)
             self._last_bad_log = now
 
+    def count_cpu_from_now(self) -> None:
+        """Start counting the process's CPU (`runtime_cpu_ms`) at the first frame, not before."""
+        if self._cpu_from is None:
+            self._cpu_from = time.process_time()
+
     def _count_arrival(self, received: Received) -> None:
         """A message's transport (producer's put to our subscriber) and queueing (subscriber to us)."""
+        self.count_cpu_from_now()
         self.stats.messages_in += 1
         self.stats.queue_s += time.time() - received.arrived
         if received.sent is not None:
@@ -379,7 +386,6 @@ class OperatorRuntime:
         if not isinstance(self.operator, Source):
             self._subscribe_inputs()
         token = self.session.liveliness().declare_token(self.keys.live(self.op_id, self.replica_id))
-        self._cpu_at_ready = time.process_time()
         try:
             if isinstance(self.operator, Source):
                 SourceDriver(self).run()

@@ -88,6 +88,7 @@ class SourceDriver:
 
     def _next_frame(self, frames: Iterator[SourceFrame]) -> SourceFrame | None:
         """The source's next frame, its reading counted as the source's own work (`cpu_ms`)."""
+        self.rt.count_cpu_from_now()
         cpu_start = time.process_time()
         sf = next(frames, None)
         if sf is not None:
