@@ -94,6 +94,9 @@ def test_toy_graph_delivers_every_frame_exactly_once(tmp_path, hub_endpoint):
     assert_exactly_once(tmp_path, 30)
     assert "[double.0]" in result.stdout and "[sink.0]" in result.stdout  # log lines carry the replica id
     assert zenoh_segments() <= before
+    table = result.stdout[result.stdout.index("(times: ms per frame)") :].splitlines()
+    sink = next(line for line in table if line.startswith("sink.r0")).split()
+    assert "-" not in sink  # where the sink's time went: CPU, runtime, join wait, queue, transport
 
 
 def test_sigkill_of_a_replica_loses_and_duplicates_nothing(tmp_path, hub_endpoint):

@@ -16,7 +16,7 @@ import zenoh
 from umad_common.bus import zenoh_config
 from umad_common.graph import validate_graph
 from umad_common.messages import Message, encode
-from umad_common.runtime import OperatorRuntime
+from umad_common.runtime import OperatorRuntime, Received
 
 GRAPH = {
     "name": "routes",
@@ -40,10 +40,9 @@ class Counting:
         return self.method(*args)
 
 
-def sample(producer: str, output: str, seq: int):
+def received(port: str, producer: str, output: str, seq: int) -> Received:
     msg = Message("run0", seq, seq, producer, {}, {"x": np.full(4, float(seq), np.float32)})
-    data = encode(msg)
-    return SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data), key_expr=f"umad/routes/{producer}/{output}")
+    return Received(port, f"umad/routes/{producer}/{output}", encode(msg), None, time.time())
 
 
 @pytest.fixture
@@ -67,9 +66,9 @@ def graph_calls_for(rt: OperatorRuntime, frames: int) -> int:
     loop = threading.Thread(target=rt._transform_loop, daemon=True)
     loop.start()
     for seq in range(start, start + frames):
-        rt.data_q.put(("a", sample("source", "value", seq)))
-        rt.data_q.put(("b", sample("double", "y", seq)))
-        rt.data_q.put(("b", sample("triple", "y", seq)))
+        rt.data_q.put(received("a", "source", "value", seq))
+        rt.data_q.put(received("b", "double", "y", seq))
+        rt.data_q.put(received("b", "triple", "y", seq))
     deadline = time.monotonic() + 60
     while rt.stats.frames_in < start + frames and time.monotonic() < deadline:
         time.sleep(0.01)

@@ -38,6 +38,17 @@ class LatencyWindow:
 
 @dataclass
 class Stats:
+    """What a replica publishes about itself. Besides the counters, where each frame's time went,
+    as sums the snapshot turns into means per frame (per message for the bus's part):
+
+    - `cpu_ms`: CPU time of the operator's own work (`process`, a source's reading of a frame);
+    - `runtime_cpu_ms`: the rest of the process's CPU since its first frame (decoding, encoding,
+      joining, acks, Zenoh's threads), per frame in: what the runtime and the bus cost;
+    - `transport_ms`: a message's time from the producer's put to this replica's subscriber;
+    - `queue_ms`: a message's time waiting for this replica to take it (the replica was busy);
+    - `wait_ms`: a frame's time from its first input to its last (waiting for a slower producer).
+    """
+
     frames_in: int = 0
     frames_out: int = 0
     errors: int = 0
@@ -49,11 +60,34 @@ class Stats:
     busy_s: float = 0.0  # sources: first send to last ack
     acked: int = 0  # sources: frames every sink has acked
     total_frames: int | None = None  # sources: frames the stream will have, when known
+    computed: int = 0  # frames the operator's work ran on (not markers)
+    cpu_s: float = 0.0
+    process_cpu_s: float = 0.0  # the process's CPU since its first frame, set at each snapshot
+    messages_in: int = 0
+    transport_s: float = 0.0
+    queue_s: float = 0.0
+    joined: int = 0
+    wait_s: float = 0.0
     latency: LatencyWindow = field(default_factory=LatencyWindow)
 
     def snapshot(self, queue_depth: int) -> dict[str, Any]:
         d = {k: v for k, v in self.__dict__.items() if k != "latency"}
-        return {**d, **self.latency.percentiles_ms(), "queue_depth": queue_depth}
+        return {**d, **self.latency.percentiles_ms(), **self.time_per_frame_ms(), "queue_depth": queue_depth}
+
+    def time_per_frame_ms(self) -> dict[str, float | None]:
+        """The sums above as means in ms (None before there is anything to divide by)."""
+
+        def mean_ms(total_s: float, count: int) -> float | None:
+            return 1e3 * total_s / count if count else None
+
+        frames = max(self.frames_in, self.frames_out)  # a source takes no frames in
+        return {
+            "cpu_ms": mean_ms(self.cpu_s, self.computed),
+            "runtime_cpu_ms": mean_ms(max(0.0, self.process_cpu_s - self.cpu_s), frames),
+            "transport_ms": mean_ms(self.transport_s, self.messages_in),
+            "queue_ms": mean_ms(self.queue_s, self.messages_in),
+            "wait_ms": mean_ms(self.wait_s, self.joined),
+        }
 
 
 @dataclass
@@ -79,6 +113,8 @@ class FrameJoiner:
         self.max_pending = max_pending
         self.pending: OrderedDict[tuple[str, int], _Pending] = OrderedDict()
         self.dropped = 0
+        self.joined = 0
+        self.wait_s = 0.0  # summed over joined frames: first input to complete
 
     def add(self, port: str, producer: str, msg: Message) -> None:
         key = (msg.run, msg.seq)
@@ -108,6 +144,8 @@ class FrameJoiner:
             )
             if complete or late:
                 del self.pending[key]
+                self.joined += 1
+                self.wait_s += now - entry.first_seen
                 ready.append(
                     Frame(
                         run=key[0],

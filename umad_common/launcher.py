@@ -450,14 +450,31 @@ class Launcher:
     def _print_summary(self) -> None:
         if not self.stats or self.quiet:
             return
-        head = f"{'replica':<24}{'in':>8}{'out':>8}{'errors':>8}{'bad':>6}{'dups':>6}{'p50 ms':>9}{'p99 ms':>9}"
-        lines = [head]
-        for name in sorted(self.stats):
-            s = self.stats[name]
-            p50 = f"{s['p50_ms']:.1f}" if s.get("p50_ms") is not None else "-"
-            p99 = f"{s['p99_ms']:.1f}" if s.get("p99_ms") is not None else "-"
-            lines.append(
-                f"{name:<24}{s['frames_in']:>8}{s['frames_out']:>8}{s['errors']:>8}{s['bad_messages']:>6}{s['duplicates']:>6}{p50:>9}{p99:>9}"
-            )
         with self._print_lock:
-            print("\n".join(lines), flush=True)
+            print(summary_table(self.stats), flush=True)
+
+
+SUMMARY_TIMES = {  # stats field -> column: where a frame's time went in each replica, ms per frame
+    "p50_ms": "p50",
+    "p99_ms": "p99",
+    "cpu_ms": "cpu",
+    "runtime_cpu_ms": "rt cpu",
+    "wait_ms": "wait",
+    "queue_ms": "queue",
+    "transport_ms": "bus",
+}
+
+
+def summary_table(stats: dict[str, dict]) -> str:
+    """The final per-replica table: counts, then ms per frame: processing latency (p50, p99), the
+    operator's own CPU (`cpu`), the runtime's and the bus's CPU in the process (`rt cpu`), waiting
+    for a slower input (`wait`), waiting for this replica to be free (`queue`: replicate it), and
+    the hop from the producer (`bus`)."""
+    head = f"{'replica':<24}{'in':>7}{'out':>7}{'errors':>7}{'bad':>5}{'dups':>5}"
+    lines = [head + "".join(f"{col:>8}" for col in SUMMARY_TIMES.values()) + "   (times: ms per frame)"]
+    for name in sorted(stats):
+        s = stats[name]
+        row = f"{name:<24}{s['frames_in']:>7}{s['frames_out']:>7}{s['errors']:>7}{s['bad_messages']:>5}{s['duplicates']:>5}"
+        times = [s.get(field) for field in SUMMARY_TIMES]
+        lines.append(row + "".join(f"{t:>8.1f}" if t is not None else f"{'-':>8}" for t in times))
+    return "\n".join(lines)

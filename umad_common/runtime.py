@@ -37,7 +37,7 @@ import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable
-from typing import Any, NoReturn
+from typing import Any, NamedTuple, NoReturn
 
 import msgpack
 import zenoh
@@ -56,10 +56,30 @@ from umad_common.source_driver import SourceDriver
 log = logging.getLogger("umad.runtime")
 
 STATS_INTERVAL_S = 1.0
+LIVE_JOIN_POLL_S = 0.05  # how often a live join with frames waiting checks their deadline
+IDLE_WAIT_S = 0.25  # an idle operator's sleep: the longest a stop signal waits to be seen
 BAD_MESSAGE_LOG_FIRST = 10  # malformed messages logged one by one; later ones are summarised
 BAD_MESSAGE_LOG_INTERVAL_S = 5.0
 REWIND_RETRY_S = 10.0
 EXIT_CONFIG = 3  # an operator that exits with this failed on its configuration: restarting cannot help
+
+
+class Received(NamedTuple):
+    """One input message as the subscriber took it: its bytes are copied out of Zenoh's shared
+    memory at once, so a busy operator's queue never holds the publisher's shared-memory pool (a
+    full pool sends every later message the slow way, through the hub's socket)."""
+
+    port: str
+    key: str
+    payload: bytes
+    sent: float | None  # the producer's put, from the sample's timestamp (wall clock, seconds)
+    arrived: float  # wall clock
+
+    @classmethod
+    def take(cls, port: str, sample: zenoh.Sample) -> Received:
+        stamp = sample.timestamp
+        sent = None if stamp is None else stamp.get_time_as_ntp64().as_secs_f64()
+        return cls(port, str(sample.key_expr), sample.payload.to_bytes(), sent, time.time())
 
 
 class OperatorRuntime:
@@ -117,6 +137,7 @@ class OperatorRuntime:
         )
         self._subscribers: list[Any] = []
         self._last_stats = 0.0
+        self._cpu_from: float | None = None  # process CPU at the first frame (start-up is no frame's cost)
         self._last_bad_log = 0.0
         self.is_sink = op_id in graph.sinks()  # sinks ack frames end to end
         self.live = self._live_mode()
@@ -132,22 +153,31 @@ class OperatorRuntime:
     def _subscribe_inputs(self) -> None:
         for port in self.spec.inputs:
             for source in self.spec.sources_of(port):
-                self.subscribe(self.keys.pattern(source), lambda s, port=port: self.data_q.put((port, s)))
+                self.subscribe(self.keys.pattern(source), lambda s, port=port: self.data_q.put(Received.take(port, s)))
 
     def _subscribe_service(self) -> None:
         control = self.keys.control(self.op_id)
-        self.subscribe(control, lambda s: self.ctl_q.put(("ctl", (s.payload.to_bytes(), None))))  # e.g. resend
+        self.subscribe(control, lambda s: self._service_event("ctl", (s.payload.to_bytes(), None)))  # e.g. resend
         self._subscribers.append(
             self.session.declare_queryable(
-                control, lambda q: self.ctl_q.put(("ctl", (q.payload.to_bytes() if q.payload else b"", q)))
+                control, lambda q: self._service_event("ctl", (q.payload.to_bytes() if q.payload else b"", q))
             )
         )
-        self.subscribe(self.keys.left, lambda s: self.ctl_q.put(("left", s)))
+        self.subscribe(self.keys.left, lambda s: self._service_event("left", s))
         self._subscribers.append(
             self.session.liveliness().declare_subscriber(
-                self.keys.live_all, lambda s: self.ctl_q.put(("live", s)), history=True
+                self.keys.live_all, lambda s: self._service_event("live", s), history=True
             )
         )
+
+    def _service_event(self, kind: str, event: Any) -> None:
+        """Queue a command or membership change and wake the transform loop to apply it now: the
+        loop sleeps on its data queue and has nothing else to wake up for."""
+        self.ctl_q.put((kind, event))
+        try:
+            self.data_q.put_nowait(None)
+        except queue.Full:  # messages are waiting: the loop is awake
+            pass
 
     def _routes(self) -> tuple[dict[str, set[str]], list[str]]:
         """The producers each wildcard port waits for and this operator's sorted live replicas:
@@ -294,6 +324,9 @@ class OperatorRuntime:
         if force or now - self._last_stats >= STATS_INTERVAL_S:
             self._last_stats = now
             self.stats.dropped = self.joiner.dropped
+            self.stats.joined, self.stats.wait_s = self.joiner.joined, self.joiner.wait_s
+            if self._cpu_from is not None:
+                self.stats.process_cpu_s = time.process_time() - self._cpu_from
             snap = self.stats.snapshot(self.data_q.qsize())
             self.stats_pub.put(json.dumps({"op": self.op_id, "replica": self.replica_id, **snap}).encode())
 
@@ -306,6 +339,19 @@ class OperatorRuntime:
         elif now - self._last_bad_log >= BAD_MESSAGE_LOG_INTERVAL_S:
             self.log.warning("%d bad messages so far; latest on %s: %s", self.stats.bad_messages, key, exc)
             self._last_bad_log = now
+
+    def count_cpu_from_now(self) -> None:
+        """Start counting the process's CPU (`runtime_cpu_ms`) at the first frame, not before."""
+        if self._cpu_from is None:
+            self._cpu_from = time.process_time()
+
+    def _count_arrival(self, received: Received) -> None:
+        """A message's transport (producer's put to our subscriber) and queueing (subscriber to us)."""
+        self.count_cpu_from_now()
+        self.stats.messages_in += 1
+        self.stats.queue_s += time.time() - received.arrived
+        if received.sent is not None:
+            self.stats.transport_s += max(0.0, received.arrived - received.sent)
 
     # -- publishing ---------------------------------------------------------------------------------
 
@@ -323,9 +369,10 @@ class OperatorRuntime:
         return payloads
 
     def publish(self, payloads: list[tuple[str, bytes]], count: bool = True) -> None:
-        """Put one frame's payloads; `count=False` for a retransmission, which is no new frame."""
+        """Put one frame's payloads; `count=False` for a retransmission, which is no new frame. Each
+        carries the put's time (a Zenoh timestamp, not part of the payload) for `transport_ms`."""
         for port, payload in payloads:
-            self.publishers[port].put(payload)
+            self.publishers[port].put(payload, timestamp=self.session.new_timestamp())
         if count:
             self.stats.frames_out += 1
 
@@ -378,9 +425,11 @@ class OperatorRuntime:
             elif skipped and not self.cls.ordered:
                 payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
             else:
-                start = time.perf_counter()
+                start, cpu_start = time.perf_counter(), time.process_time()
                 try:
                     outputs = self.operator.process(frame)
+                    self.stats.cpu_s += time.process_time() - cpu_start
+                    self.stats.computed += 1
                     if skipped:  # an in-order operator saw the frame for its state; nobody scores it
                         payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
                     else:
@@ -433,19 +482,22 @@ class OperatorRuntime:
             live_changed = self.handle_service()
             self.publish_stats()
             deadline_s = self._deadline_s()
-            try:
-                port, sample = self.data_q.get(timeout=0.05)
+            try:  # messages and commands wake the loop; the timeout is for deadlines, stats and signals
+                received = self.data_q.get(
+                    timeout=LIVE_JOIN_POLL_S if deadline_s and self.joiner.pending else IDLE_WAIT_S
+                )
             except queue.Empty:
-                port = None
-            if port is not None:
+                received = None
+            if received is not None:
+                self._count_arrival(received)
                 try:
-                    msg = decode(sample.payload.to_bytes())
+                    msg = decode(received.payload)
                 except MessageError as exc:
                     self.stats.bad_messages += 1
-                    self._warn_bad_message(str(sample.key_expr), exc)
+                    self._warn_bad_message(received.key, exc)
                     continue
                 key = (msg.run, msg.seq)
-                producer = self.keys.parse_data(str(sample.key_expr))[0]
+                producer = self.keys.parse_data(received.key)[0]
                 if msg.meta.get("eos"):
                     end_run(msg)
                     continue
@@ -459,7 +511,7 @@ class OperatorRuntime:
                     continue
                 if not self._owns(msg.seq):
                     continue
-                self.joiner.add(port, producer, msg)
+                self.joiner.add(received.port, producer, msg)
             elif not live_changed and not (deadline_s and self.joiner.pending):
                 continue
             for frame in self.joiner.pop_ready(self._routes()[0], deadline_s):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import queue
 import time
 from collections import defaultdict
+from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
 import msgpack
@@ -18,6 +19,7 @@ if TYPE_CHECKING:
     from umad_common.runtime import OperatorRuntime
 
 LIVE_WAIT_S = 60.0
+ACK_WAIT_S = 0.05  # a full window's wait for acks (an ack ends it at once): re-sends and commands wait this long
 
 
 class SourceDriver:
@@ -58,8 +60,10 @@ class SourceDriver:
         count = 0
         last_stamp = 0
         next_due = started = time.monotonic()
-        for sf in self.source.frames():
-            if rt.shutdown.is_set() or (rt.max_frames is not None and sent >= rt.max_frames):
+        frames = self.source.frames()
+        while not rt.shutdown.is_set() and (rt.max_frames is None or sent < rt.max_frames):
+            sf = self._next_frame(frames)
+            if sf is None:
                 break
             if current is not None and sf.run != current:
                 self._end_run(current, count, last_stamp)
@@ -71,7 +75,7 @@ class SourceDriver:
                     self._service(min(0.01, max(0.0, next_due - time.monotonic())))
             else:
                 while len(self.inflight) >= self.pacing.window and not rt.shutdown.is_set():
-                    self._service(0.01)
+                    self._service(ACK_WAIT_S)
             self._send((sf.run, sf.seq), self._payloads(sf))
             sent += 1
             count += 1
@@ -81,6 +85,16 @@ class SourceDriver:
         rt.stats.busy_s = time.monotonic() - started
         rt.publish_stats(force=True)
         rt.log.info("source finished: %d frames sent, %d retransmits", sent, rt.stats.retransmits)
+
+    def _next_frame(self, frames: Iterator[SourceFrame]) -> SourceFrame | None:
+        """The source's next frame, its reading counted as the source's own work (`cpu_ms`)."""
+        self.rt.count_cpu_from_now()
+        cpu_start = time.process_time()
+        sf = next(frames, None)
+        if sf is not None:
+            self.rt.stats.cpu_s += time.process_time() - cpu_start
+            self.rt.stats.computed += 1
+        return sf
 
     def _wait_for_graph(self) -> None:
         """Frames sent before every operator subscribed would be lost to them: wait for all tokens."""
@@ -147,6 +161,8 @@ class SourceDriver:
             except queue.Empty:
                 raw = None
         now = time.monotonic()
+        if not self.inflight or now - min(last for _, _, last in self.inflight.values()) <= self.pacing.ack_timeout_s:
+            return  # nothing can be due: the percentiles below cost more than this whole call
         timeout_s = max(self.pacing.ack_timeout_s, 3 * (self.e2e.percentiles_ms()["p99_ms"] or 0) / 1e3)
         for key, (payloads, first, last) in list(self.inflight.items()):
             if now - last > timeout_s and self.pacing.pacing == "realtime":
@@ -183,10 +199,10 @@ class SourceDriver:
         """Drain the run's frames, then send its end-of-run marker until every sink acked it."""
         rt = self.rt
         while self.inflight and not rt.shutdown.is_set():
-            self._service(0.01)
+            self._service(ACK_WAIT_S)
         markers = rt.markers(run, frames, stamp_ns, {"eos": True, "frames": frames})
         self.markers.add((run, frames))
         self._send((run, frames), markers)
         while self.inflight and not rt.shutdown.is_set():
-            self._service(0.01)
+            self._service(ACK_WAIT_S)
         rt.log.info("run %s: %d frames", run, frames)

@@ -1,19 +1,37 @@
-"""`umad bench pipeline`: the default graph end to end on a small generated benchmark.
+"""`umad bench pipeline`: the default graph end to end on a small generated benchmark, next to the
+bound the machine sets.
 
-Reports frames/s (frames over the source's first-send-to-last-ack time, start-up excluded) and the
-end-to-end latency from the replayer's send to the accumulator's ack (p50/p99), plus each operator's
-own processing latency, so the slowest stage is visible.
+Two passes over the same frames. First every operator of the graph in this one process, frame by
+frame in the graph's order, each `process` call timed in CPU seconds: the operators' own work per
+frame, summed over the graph and divided by the cores, is the frames/s the machine could reach if
+the dataflow cost nothing. Then the graph itself, as processes on a hub: frames/s (frames over the
+source's first-send-to-last-ack time, start-up excluded), end-to-end latency from the replayer's
+send to the accumulator's ack (p50/p99), their ratio to the bound, and per operator where a frame's
+time went (the stats every replica publishes, see `umad_common.delivery.Stats`), so the operator to
+replicate or move to another machine is visible.
+
+On a machine shared with other work the graph gets fewer cores than the bound assumes:
+`cores_used` is the graph's CPU (every replica's, the hub's not counted) over its busy time, and
+`work_share_of_graph_cpu` the part of that CPU which was the operators' own work (the rest is the
+runtime and the bus), a figure other load moves much less than frames/s.
 """
 
 from __future__ import annotations
 
+import os
 import tempfile
+import time
 from pathlib import Path
 
 import yaml
 
 from umad_common import DEFAULT_GRAPH
 from umad_common.benchmarks.graphs import run_bench_graph
+from umad_common.graph import Graph, validate_graph
+from umad_common.messages import Message
+from umad_common.operator import Context, Frame, Operator, Source
+
+STAGE_FIELDS = ("cpu_ms", "runtime_cpu_ms", "wait_ms", "queue_ms", "transport_ms", "p50_ms")
 
 
 def bench_pipeline(frames: int = 30, hub: str = "tcp/127.0.0.1:7449", graph: Path = DEFAULT_GRAPH) -> dict:
@@ -27,17 +45,120 @@ def bench_pipeline(frames: int = 30, hub: str = "tcp/127.0.0.1:7449", graph: Pat
     for op in graph_data["operators"]:
         if op.get("kind") == "replayer":
             op.setdefault("params", {}).update({"source": str(data / "anomalous"), "every": 1})
+    graph = validate_graph(graph_data)
+    work = work_per_frame(graph)
+    cores = len(os.sched_getaffinity(0))
+    bound_fps = cores / (sum(work["cpu_ms"].values()) / 1e3)
     result = run_bench_graph(graph_data)
-    stages = {
-        name.rsplit(".", 1)[0]: {"p50_ms": s["p50_ms"], "p99_ms": s["p99_ms"]}
-        for name, s in result["stats"].items()
-        if not name.startswith(graph_data["operators"][0]["id"])
-    }
+    graph_cpu_s = sum(s.get("process_cpu_s", 0.0) for s in result["stats"].values())
+    source = result["stats"][f"{graph.sources()[0]}.r0"]
     return {
         "frames": result["frames"],
+        "cores": cores,
         "fps": result["fps"],
+        "bound_fps": bound_fps,
+        "fps_ratio_to_bound": result["fps"] / bound_fps,
+        "cores_used": graph_cpu_s / source["busy_s"],
+        "work_share_of_graph_cpu": result["frames"] * sum(work["cpu_ms"].values()) / 1e3 / graph_cpu_s,
+        "in_process_fps": work["fps"],
         "end_to_end_p50_ms": result["p50_ms"],
         "end_to_end_p99_ms": result["p99_ms"],
         "wall_s_with_startup": result["wall_s_with_startup"],
-        "stage_latency": stages,
+        "stages": {
+            op: {"alone_cpu_ms": cpu_ms, **stage_times(result["stats"], op)} for op, cpu_ms in work["cpu_ms"].items()
+        },
     }
+
+
+def work_per_frame(graph: Graph) -> dict:
+    """Every operator of `graph` run in this process on the source's frames: CPU ms per frame of
+    each one's own work (a source's: producing the frame), and the frames/s of the whole chain."""
+    ops: dict[str, Operator] = {
+        spec.id: graph.classes[spec.id](spec.params, Context(spec.id, 0, graph.name, graph.base_dir))
+        for spec in graph.spec.operators
+    }
+    order = topological_order(graph)
+    source_id = graph.sources()[0]
+    source = ops[source_id]
+    assert isinstance(source, Source)
+    cpu_s = dict.fromkeys(order, 0.0)
+    count = 0
+    start = time.perf_counter()
+    frames = source.frames()
+    while True:
+        cpu_start = time.process_time()
+        sf = next(frames, None)
+        if sf is None:
+            break
+        cpu_s[source_id] += time.process_time() - cpu_start
+        count += 1
+        published = {
+            (source_id, port): Message(sf.run, sf.seq, sf.stamp_ns, source_id, out.meta, out.arrays)
+            for port, out in sf.outputs.items()
+        }
+        for op_id in (op for op in order if op != source_id):
+            frame = joined_inputs(graph, op_id, sf.run, sf.seq, sf.stamp_ns, published)
+            cpu_start = time.process_time()
+            outputs = ops[op_id].process(frame)
+            cpu_s[op_id] += time.process_time() - cpu_start
+            for port, out in outputs.items():
+                published[(op_id, port)] = Message(sf.run, sf.seq, sf.stamp_ns, op_id, out.meta, out.arrays)
+    elapsed = time.perf_counter() - start
+    for op in ops.values():
+        op.close()
+    return {"cpu_ms": {op: 1e3 * s / max(count, 1) for op, s in cpu_s.items()}, "fps": count / elapsed}
+
+
+def joined_inputs(
+    graph: Graph, op_id: str, run: str, seq: int, stamp_ns: int, published: dict[tuple[str, str], Message]
+) -> Frame:
+    """The frame the runtime would hand `op_id`: one message per single port, every matching
+    producer's per `many` port."""
+    spec = graph.op(op_id)
+    frame = Frame(run, seq, stamp_ns)
+    for port in graph.classes[op_id].inputs:
+        if port.name not in spec.inputs:
+            continue
+        matches = {
+            producer: published[(producer, output)]
+            for source in spec.sources_of(port.name)
+            for producer, output in graph.producers(source)
+            if (producer, output) in published
+        }
+        if port.many:
+            frame.many[port.name] = matches
+        else:
+            frame.inputs[port.name] = next(iter(matches.values()))
+    return frame
+
+
+def topological_order(graph: Graph) -> list[str]:
+    """Operator ids, each after every operator it reads from (the graph has no cycles)."""
+    order: list[str] = []
+
+    def visit(op_id: str) -> None:
+        if op_id in order:
+            return
+        spec = graph.op(op_id)
+        for port in spec.inputs:
+            for source in spec.sources_of(port):
+                for producer, _ in graph.producers(source):
+                    visit(producer)
+        order.append(op_id)
+
+    for source in graph.sources():
+        visit(source)
+    for spec in graph.spec.operators:
+        visit(spec.id)
+    return order
+
+
+def stage_times(stats: dict[str, dict], op_id: str) -> dict[str, float | None]:
+    """One operator's per-frame times in the graph run, its replicas' means weighted by frames."""
+    replicas = [s for name, s in stats.items() if name.rsplit(".", 1)[0] == op_id]
+    times = {}
+    for field in STAGE_FIELDS:
+        weighted = [(s[field], max(s["frames_in"], s["frames_out"])) for s in replicas if s.get(field) is not None]
+        frames = sum(n for _, n in weighted)
+        times[field] = sum(v * n for v, n in weighted) / frames if frames else None
+    return times

@@ -93,4 +93,5 @@ def bench_scaling(frames: int = 40, hub: str = "tcp/127.0.0.1:7449") -> dict:
         "frames": frames,
         "feature_net": compare_replicas(frames, hub),
         "vgg16": compare_replicas(max(8, frames // 2), hub, random_vgg16_file()),
+        "vgg16_weights": "random, torchvision layout (ImageNet weights cannot be downloaded here; same cost)",
     }
