@@ -217,9 +217,10 @@ def test_measure_segmenter_reports_refined_ap_when_frames_carry_a_fused_map():
     gt = measure_segmenter({"method": "gt", "options": {"stuff_min_area": 1}}, frames)  # every pixel in a mask
     assert gt.frames == 2 and gt.coverage == 1.0 and gt.best_iou == 1.0
     assert gt.refined_ap == 1.0 > gt.pixel_ap
+    assert gt.refined_fpr95 == 0.0 < gt.pixel_fpr95  # the anomaly's mask alone scores above every normal pixel
     plain = [LabelledFrame(f.run, f.seq, f.target, f.anomaly, f.instance, f.semantic) for f in frames]
     without_maps = measure_segmenter({"method": "gt"}, plain)
-    assert without_maps.refined_ap is None and without_maps.pixel_ap is None
+    assert without_maps.refined_ap is None and without_maps.pixel_ap is None and without_maps.refined_fpr95 is None
 
 
 def test_every_registered_method_has_a_name_schema_and_grid_over_its_own_options():

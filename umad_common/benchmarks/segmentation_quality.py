@@ -69,9 +69,17 @@ class SegmenterQuality:
     cpu_ms_per_frame: float
     refined_ap: float | None = None
     pixel_ap: float | None = None
+    refined_fpr95: float | None = None  # false-positive rate at 95 % of the anomaly pixels found: a mask
+    #   setting that lifts whole large segments can raise the AP and still flag much of the road
+    pixel_fpr95: float | None = None
 
     def row(self) -> str:
-        ap = "" if self.refined_ap is None else f"AP {self.refined_ap:6.1%} (pixel {self.pixel_ap:5.1%})  "
+        ap = (
+            ""
+            if self.refined_ap is None
+            else f"AP {self.refined_ap:6.1%} (pixel {self.pixel_ap:5.1%})  "
+            f"FPR95 {self.refined_fpr95:6.1%} (pixel {self.pixel_fpr95:5.1%})  "
+        )
         return ap + (
             f"coverage {self.coverage:6.1%}  best IoU {self.best_iou:5.3f}  normal seg px {self.normal_segment_px:7.0f}  "
             f"masks/frame {self.masks_per_frame:6.1f}  "
@@ -243,6 +251,14 @@ def measure_segmenter(params: dict, frames: Iterable[LabelledFrame]) -> Segmente
         masks_per_frame=masks_total / count,
         ms_per_frame=1000.0 * seconds / count,
         cpu_ms_per_frame=1000.0 * cpu_seconds / count,
-        refined_ap=float(refined_metrics.compute()["AP"]) if refined_metrics.n_anomaly else None,
-        pixel_ap=float(pixel_metrics.compute()["AP"]) if pixel_metrics.n_anomaly else None,
+        **figures(refined_metrics, "refined"),
+        **figures(pixel_metrics, "pixel"),
     )
+
+
+def figures(metrics: PixelMetrics, prefix: str) -> dict[str, float]:
+    """{prefix_ap, prefix_fpr95} of accumulated metrics; none without anomaly pixels."""
+    if not metrics.n_anomaly:
+        return {}
+    result = metrics.compute()
+    return {f"{prefix}_ap": float(result["AP"]), f"{prefix}_fpr95": float(result["FPR95"])}
