@@ -3,6 +3,11 @@ the in-process pass `umad bench pipeline` measures the operators' own work with.
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -68,3 +73,20 @@ def test_default_graph_in_process_order_and_joined_inputs():
     }
     frame = joined_inputs(graph, "fusion", "r", 0, 0, published)
     assert set(frame.many["maps"]) == {"diff_abs", "diff_ssim"}  # diff_*/map, not mnad's map
+
+
+def test_a_replica_process_runs_numpy_blas_on_one_thread():
+    """BLAS threads spin after each call: a replica keeps one (run_operator calls one_blas_thread first)."""
+    probe = (
+        "import json, numpy, threadpoolctl\n"
+        "from umad_common.runtime import one_blas_thread\n"
+        "blas = lambda: [p['num_threads'] for p in threadpoolctl.threadpool_info() if p['user_api'] == 'blas']\n"
+        "before = blas()\n"
+        "one_blas_thread()\n"
+        "print(json.dumps([before, blas()]))\n"
+    )
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "2", "OMP_NUM_THREADS": "2"}
+    result = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True)
+    before, after = json.loads(result.stdout)
+    assert before and max(before) == 2  # the probe sees numpy's BLAS with the threads the environment allows
+    assert set(after) == {1}
