@@ -41,8 +41,8 @@ from typing import Any, NamedTuple, NoReturn
 
 import msgpack
 import zenoh
-from threadpoolctl import threadpool_limits
 from pydantic import ValidationError
+from threadpoolctl import threadpool_limits
 
 from umad_common.assignments import GraphError, merge_params, parse_sets
 from umad_common.bus import Keys, ShutdownSignal, answer, close_session, open_client
