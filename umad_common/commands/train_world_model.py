@@ -17,7 +17,7 @@ import shlex
 from dataclasses import asdict
 from pathlib import Path
 
-DEFAULT_EPOCHS = 25  # 105 s per epoch with the motion warp on 2 free cores: 44 min, within the 45 min budget
+DEFAULT_EPOCHS = 25
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
