@@ -130,13 +130,13 @@ class WorldModelPredictor(Operator):
         valid = np.zeros(n, np.uint8)
         model_step = frame.seq % self.params.stride == 0
         embed = self.model.embed(obs)[:, 0]
-        hidden = self.model.transition(self.state, self.pending_action)
+        hidden = self.model.transition(self.state, self.pending_action, move=False)
         posterior = State(hidden, self.model.posterior(hidden, embed)[0])
         scored = not frame.inputs["camera"].meta.get("skip")
         if model_step:
             advanced = []
             for origin in self.rollouts:
-                h_pred = self.model.transition(origin, self.pending_action)
+                h_pred = self.model.transition(origin, self.pending_action, move=True)
                 advanced.append(State(h_pred, self.model.prior(h_pred)[0]))
             if scored:
                 batch = [posterior, *advanced]

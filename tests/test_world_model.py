@@ -12,6 +12,7 @@ from operators.world_model import WorldModelPredictor
 from umad_common.messages import Message
 from umad_common.models.weights import WeightsError
 from umad_common.models.world_model import (
+    MotionWarp,
     Observation,
     State,
     WorldModel,
@@ -41,6 +42,7 @@ TINY = dict(
     side_channels=4,
     hidden_channels=8,
     transition_kernel=3,
+    motion_channels=4,
 )
 
 
@@ -75,6 +77,18 @@ def test_observe_and_imagine_shapes():
     assert imagined.states.h.shape == (2, 3, c.deter_dim)
     with pytest.raises(ValueError, match="at least 4"):
         model.imagine(last, actions[:, :3], 4)
+
+
+def test_motion_warp_starts_as_the_identity_and_moves_cells_by_its_displacement():
+    torch.manual_seed(0)
+    warp = MotionWarp(in_channels=3, hidden=4, max_shift=4.0, grid=(6, 8))
+    features, maps = torch.randn(2, 3, 6, 8), torch.randn(2, 5, 6, 8)
+    assert torch.allclose(warp(features, maps), maps, atol=1e-5)  # zero-initialised head: no motion
+    with torch.no_grad():  # a displacement of exactly +1 cell in x (columns) and 0 in y everywhere
+        warp.net[-1].bias.copy_(torch.tensor([float(np.arctanh(1 / 4.0)), 0.0]))
+    moved = warp(features, maps)
+    assert torch.allclose(moved[..., :-1], maps[..., 1:], atol=1e-5)  # each cell takes its right neighbour's content
+    assert torch.allclose(moved[..., -1], maps[..., -1], atol=1e-5)  # past the border: the edge repeats
 
 
 def test_config_rejects_image_size_not_divisible():

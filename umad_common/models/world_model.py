@@ -6,6 +6,7 @@ into one vector that is broadcast onto the same grid. The recurrent state s_t = 
 that grid: a deterministic convolutional GRU map h_t and a stochastic Gaussian map z_t:
 
     h_t = ConvGRU(h_{t-1}, [z_{t-1}, a_{t-1}])  a = [throttle - brake, steer], the control after t-1
+    predicting (imagine): the same on warp(h_{t-1}), warp(z_{t-1}); warp moves each cell as the scene moves
     prior      p(z_t | h_t)                     what the model expects without looking
     posterior  q(z_t | h_t, embed(o_t))         what it believes after looking
     decoder    (h_t, z_t) -> RGB image
@@ -63,9 +64,11 @@ class WorldModelConfig:
     stoch_channels: int = 8  # channels of the Gaussian map z: the only per-frame path from the image
     side_channels: int = 16  # lidar + route + speed embedding, broadcast onto the latent grid
     hidden_channels: int = 48  # width of the prior and posterior heads
-    transition_kernel: int = 7  # kernel of the ConvGRU: how far (in cells) the scene can move per step; with
-    #   5 the 3-step predictions were worst at the image's sides (20.6 dB there vs 25.5 in the centre), where
-    #   facades pass 2-3 cells per step at 9 m/s
+    transition_kernel: int = 7  # kernel of the ConvGRU: how far (in cells) its update reaches per step
+    max_shift: float = 4.0  # cells the motion warp may move a cell of the state per step; without the warp
+    #   the 3-step predictions were worst at the image's sides (20.6 dB there vs 25.5 in the centre), where
+    #   facades pass 2-3 cells per step at 9 m/s, further than a convolution's reach
+    motion_channels: int = 32  # width of the motion head that predicts the warp
     min_std: float = 0.1  # floor of the latent standard deviation
     frame_step: int = 1  # dataset frames per model step the model was trained with
 
@@ -92,6 +95,8 @@ class WorldModelConfig:
             raise ValueError(f"route_size {self.route_size} must be divisible by {2 ** len(self.route_channels)}")
         if self.transition_kernel % 2 == 0:
             raise ValueError(f"transition_kernel {self.transition_kernel} must be odd")
+        if self.max_shift <= 0:
+            raise ValueError(f"max_shift {self.max_shift} must be positive (cells per step)")
 
     @property
     def grid(self) -> tuple[int, int]:
@@ -245,6 +250,44 @@ class ConvGRUCell(nn.Module):
         return update * candidate + (1 - update) * h
 
 
+class MotionWarp(nn.Module):
+    """Moves the state with the scene before the GRU updates it.
+
+    A small head reads the state, the action and each cell's position (driving forward, the scene
+    flows outward from the vanishing point, faster at the sides and the nearer it is) and predicts
+    a displacement per cell, in cells, bounded by `max_shift`; the maps are then resampled
+    bilinearly from where their content was a step before. The head's last layer starts at zero,
+    so an untrained warp is the identity and the model learns how far each cell moves."""
+
+    def __init__(self, in_channels: int, hidden: int, max_shift: float, grid: tuple[int, int]):
+        super().__init__()
+        self.max_shift = max_shift
+        self.net = nn.Sequential(
+            nn.Conv2d(in_channels + 2, hidden, 5, padding=2),
+            nn.SiLU(),
+            nn.Conv2d(hidden, hidden, 3, padding=1),
+            nn.SiLU(),
+            nn.Conv2d(hidden, 2, 3, padding=1),
+        )
+        nn.init.zeros_(self.net[-1].weight)
+        nn.init.zeros_(self.net[-1].bias)
+        rows, cols = grid
+        ys, xs = torch.meshgrid(torch.linspace(-1, 1, rows), torch.linspace(-1, 1, cols), indexing="ij")
+        self.register_buffer("position", torch.stack([xs, ys])[None], persistent=False)  # (1, 2, rows, cols)
+        self.register_buffer(
+            "cell", torch.tensor([2.0 / max(cols - 1, 1), 2.0 / max(rows - 1, 1)]), persistent=False
+        )  # one cell in grid_sample's [-1, 1] units, (x, y)
+
+    def forward(self, features: torch.Tensor, maps: torch.Tensor) -> torch.Tensor:
+        """Warp `maps` (B, C, rows, cols) by the motion read from `features` (B, F, rows, cols)."""
+        position = self.position.to(features.dtype).expand(features.shape[0], -1, -1, -1)
+        shift = self.max_shift * torch.tanh(self.net(torch.cat([features, position], dim=1)).float())
+        source = self.position + shift * self.cell[None, :, None, None]  # where each cell's content was
+        return F.grid_sample(
+            maps.float(), source.permute(0, 2, 3, 1), mode="bilinear", padding_mode="border", align_corners=True
+        ).to(maps.dtype)
+
+
 def grid_head(in_channels: int, hidden: int, out_channels: int) -> nn.Sequential:
     """Per-cell Gaussian parameters on the latent grid (3x3 conv, then 1x1)."""
     return nn.Sequential(nn.Conv2d(in_channels, hidden, 3, padding=1), nn.SiLU(), nn.Conv2d(hidden, out_channels, 1))
@@ -292,6 +335,7 @@ class WorldModel(nn.Module):
         self.lidar_encoder = VectorEncoder(4, c.lidar_channels, c.lidar_rows, c.lidar_width, c.lidar_embed)
         self.route_encoder = VectorEncoder(1, c.route_channels, c.route_size, c.route_size, c.route_embed)
         self.side = nn.Linear(c.lidar_embed + c.route_embed + 1, c.side_channels)  # + speed
+        self.motion = MotionWarp(c.deter_channels + c.stoch_channels + 2, c.motion_channels, c.max_shift, c.grid)
         self.gru = ConvGRUCell(c.stoch_channels + 2, c.deter_channels, c.transition_kernel)
         self.prior_net = grid_head(c.deter_channels, c.hidden_channels, 2 * c.stoch_channels)
         embed_channels = c.image_channels[-1] + c.side_channels
@@ -334,11 +378,23 @@ class WorldModel(nn.Module):
         mean, raw_std = params.chunk(2, dim=1)  # channel halves -> (B, stoch_channels, rows, cols) each
         return mean.flatten(1), F.softplus(raw_std).flatten(1) + self.config.min_std
 
-    def transition(self, state: State, action: torch.Tensor) -> torch.Tensor:
-        """h_t from s_{t-1} and the action a_{t-1} (B, 2) taken after it -> (B, deter_dim)."""
-        z = self.as_grid(state.z)
-        action_grid = action[:, :, None, None].expand(-1, -1, *z.shape[2:])
-        return self.gru(torch.cat([z, action_grid], dim=1), self.as_grid(state.h)).flatten(1)
+    def transition(self, state: State, action: torch.Tensor, move: bool) -> torch.Tensor:
+        """h_t from s_{t-1} and the action a_{t-1} (B, 2) taken after it -> (B, deter_dim).
+
+        `move` (predicting: `imagine`) first moves the state with the scene (MotionWarp), then the
+        GRU updates it. Filtering (`observe`) leaves the warp out: a warp also carries what the
+        posterior drew a step before, an anomaly included, into the next frame's prior, so the
+        reconstructions would learn to redraw an object they never saw once it has been in view
+        (measured on validation seed 2 with the warp in both: abs+ssim+perceptual AP without masks
+        35.8 -> 28.4 %, while the 3-step prediction gained 1.9 dB)."""
+        h, z = self.as_grid(state.h), self.as_grid(state.z)
+        action_grid = action[:, :, None, None].expand(-1, -1, *z.shape[2:]).to(z.dtype)
+        if move:
+            state_grid = torch.cat([h, z], dim=1)
+            h, z = self.motion(torch.cat([state_grid, action_grid], dim=1), state_grid).split(
+                [h.shape[1], z.shape[1]], dim=1
+            )
+        return self.gru(torch.cat([z, action_grid], dim=1), h).flatten(1)
 
     def prior(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """p(z_t | h_t): mean and std, each (B, stoch_dim)."""
@@ -371,7 +427,7 @@ class WorldModel(nn.Module):
         state = state or self.initial_state(b)
         hs, zs, prior_stats, post_stats = [], [], [], []
         for step in range(t):
-            h = self.transition(state, prev_actions[:, step])
+            h = self.transition(state, prev_actions[:, step], move=False)
             prior_stats.append(self.prior(h))
             mean, std = self.posterior(h, embed[:, step])
             post_stats.append((mean, std))
@@ -399,7 +455,7 @@ class WorldModel(nn.Module):
             raise ValueError(f"imagine: {actions.shape[1]} actions for {n} steps; expected at least {n}")
         hs, zs = [], []
         for step in range(n):
-            h = self.transition(state, actions[:, step])
+            h = self.transition(state, actions[:, step], move=True)
             state = State(h, self.prior(h)[0])
             hs.append(state.h)
             zs.append(state.z)

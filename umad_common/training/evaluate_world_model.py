@@ -57,7 +57,7 @@ def predict_drive(model: WorldModel, drive: DriveArrays, posterior: State, horiz
     for k in range(1, horizon + 1):
         if len(drive) <= k:
             return
-        h = model.transition(State(states.h[:-1], states.z[:-1]), actions[k - 1 : len(drive) - 1])
+        h = model.transition(State(states.h[:-1], states.z[:-1]), actions[k - 1 : len(drive) - 1], move=True)
         states = State(h, model.prior(h)[0])  # row j: prediction of frame j + k
         images = [
             model.decode(State(states.h[i : i + chunk], states.z[i : i + chunk])).permute(0, 2, 3, 1).numpy()
