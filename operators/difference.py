@@ -60,7 +60,9 @@ class Difference(Operator):
             "umad_common/assets/feature_net.safetensors",
             description="label-free feature net weights (safetensors + .json config) for the perceptual metric",
         )
-        threads: int = Field(1, ge=1, le=64, description="torch CPU threads of this replica")
+        threads: int = Field(
+            1, ge=1, le=64, description="torch CPU threads of this replica (the perceptual metric's network)"
+        )
 
     def __init__(self, params: BaseModel | dict | None = None, context: Context | None = None):
         super().__init__(params, context)
@@ -72,12 +74,10 @@ class Difference(Operator):
         self.params = params
 
     def _configure(self, params: Params) -> None:
-        import torch
-
-        torch.set_num_threads(params.threads)
         options = MetricOptions(
             vgg_weights=self.context.resolve(params.vgg_weights) if params.vgg_weights else None,
             features=self.context.resolve(params.features),
+            threads=params.threads,
         )
         metric: DifferenceMetric = build_metric(params.metric, options)
         scale = None

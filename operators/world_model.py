@@ -19,21 +19,16 @@ rollouts on, but nothing is decoded: the runtime passes it on as a skip marker.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from umad_common.messages import Message
-from umad_common.models.world_model import (
-    Observation,
-    State,
-    action_of,
-    lidar_range_image,
-    load_world_model,
-    resize_rgb,
-    resize_route,
-)
 from umad_common.operator import Frame, Input, Operator, Output
+
+if TYPE_CHECKING:
+    from umad_common.models.world_model import Observation, State
 
 
 class WorldModelParams(BaseModel):
@@ -73,9 +68,14 @@ class WorldModelPredictor(Operator):
 
     def __init__(self, params: BaseModel | dict | None = None, context=None):
         super().__init__(params, context)
+        import torch  # here, not at the top: every replica imports this module to check the graph
+
+        from umad_common.models import world_model
+
+        self.torch, self.wm = torch, world_model
         torch.set_num_threads(self.params.threads)
         self.model_path = self.context.resolve(self.params.model)
-        self.model, _ = load_world_model(self.model_path)
+        self.model, _ = world_model.load_world_model(self.model_path)
         self.config = self.model.config
         self.trained_frame_step = int(self.config.frame_step)
         self.run: str | None = None
@@ -85,7 +85,7 @@ class WorldModelPredictor(Operator):
         """Forget the previous run: initial state, no rollouts, no pending action."""
         self.state: State = self.model.initial_state(1)
         self.rollouts: list[State] = []  # prior rollouts advanced to the last step; [i-1] started i steps before it
-        self.pending_action = torch.zeros(1, 2)
+        self.pending_action = self.torch.zeros(1, 2)
         self.steps = 0
 
     def update_params(self, params: BaseModel) -> None:
@@ -93,32 +93,37 @@ class WorldModelPredictor(Operator):
             raise ValueError("world_model: `model` cannot change at runtime; restart the operator with the new weights")
         horizon_changed = params.horizon != self.params.horizon
         super().update_params(params)
-        torch.set_num_threads(params.threads)
+        self.torch.set_num_threads(params.threads)
         if horizon_changed:
             self.rollouts = self.rollouts[: params.horizon]
 
     def observation(self, frame: Frame) -> tuple[Observation, np.ndarray, np.ndarray]:
         """Model inputs (B = T = 1), the target (h, w, 3) float32 and the action (2,) of this frame."""
-        c = self.config
-        rgb = resize_rgb(np.asarray(array_of(frame, "camera", "rgb"), np.uint8), c)
+        c, wm, torch = self.config, self.wm, self.torch
+        rgb = wm.resize_rgb(np.asarray(array_of(frame, "camera", "rgb"), np.uint8), c)
         ego = np.asarray(array_of(frame, "ego", "ego"), np.float32).reshape(-1)
         if ego.shape != (4,):
             raise ValueError(
                 f"world_model {frame.frame_id}: ego has shape {ego.shape}; expected (4,) [speed, throttle, brake, steer]"
             )
-        lidar = lidar_range_image(array_of(frame, "lidar", "points"), c)
-        route = resize_route(array_of(frame, "route", "route"), c)
+        lidar = wm.lidar_range_image(array_of(frame, "lidar", "points"), c)
+        route = wm.resize_route(array_of(frame, "route", "route"), c)
         target = rgb.astype(np.float32) / 255.0
-        obs = Observation(
+        obs = wm.Observation(
             rgb=torch.from_numpy(target).permute(2, 0, 1)[None, None],
             lidar=torch.from_numpy(lidar)[None, None],
             route=torch.from_numpy(route.astype(np.float32) / 255.0)[None, None, None],
             speed=torch.tensor([[[ego[0] / c.speed_scale]]]),
         )
-        return obs, target, action_of(ego[1], ego[2], ego[3])
+        return obs, target, wm.action_of(ego[1], ego[2], ego[3])
 
-    @torch.no_grad()
     def process(self, frame: Frame) -> dict[str, Output]:
+        with self.torch.no_grad():
+            return self.step(frame)
+
+    def step(self, frame: Frame) -> dict[str, Output]:
+        """`process` without gradients: one frame through the model."""
+        torch, State = self.torch, self.wm.State
         if frame.run != self.run or frame.seq == 0:
             self.run = frame.run
             self.reset()

@@ -21,7 +21,6 @@ from umad_common.differences import (
     CalibrationFitter,
     DifferenceInputError,
     MseDifference,
-    PerceptualDifference,
     SsimDifference,
     TemporalDifference,
     UnknownMetricError,
@@ -30,6 +29,7 @@ from umad_common.differences import (
     load_calibration,
     minmax,
 )
+from umad_common.differences.perceptual import PerceptualDifference
 from umad_common.messages import Message
 from umad_common.models.feature_net import FeatureNet, load_feature_net, save_feature_net
 from umad_common.models.vgg16 import load_vgg16_features

@@ -29,11 +29,16 @@ def import_class(path: str, base: type, what: str, error: type[Exception]) -> ty
     return cls
 
 
-def registered_class(name: str, registry: Mapping[str, type], base: type, what: str, error: type[Exception]) -> type:
+def registered_class(
+    name: str, registry: Mapping[str, type | str], base: type, what: str, error: type[Exception]
+) -> type:
     """The class registered as `name`, or imported from a `package.module:ClassName` path (see
-    `import_class`, whose arguments these are besides `registry`: the built-in classes by name)."""
+    `import_class`, whose arguments these are besides `registry`: the built-in classes by name; a
+    built-in whose module is slow to import, e.g. one that needs torch, is registered by its import
+    path and imported on first use, so every process that merely checks a graph does not pay for it)."""
     if name in registry:
-        return registry[name]
+        entry = registry[name]
+        return entry if isinstance(entry, type) else import_class(entry, base, what, error)
     if ":" not in name:
         raise error(f"unknown {what} {name!r}; expected one of {sorted(registry)} or `package.module:ClassName`")
     return import_class(name, base, what, error)

@@ -32,5 +32,6 @@ def run_bench_graph(graph_data: dict, timeout_note: str = "") -> dict:
         "p50_ms": source["p50_ms"],
         "p99_ms": source["p99_ms"],
         "wall_s_with_startup": wall,
+        "start_and_stop_s": wall - busy,  # launch to the first frame sent, and the last ack to every replica gone
         "stats": launcher.stats,
     }

@@ -29,11 +29,14 @@ from umad_common.differences.normalization import (
     load_calibration,
     minmax,
 )
-from umad_common.differences.perceptual import PerceptualDifference
 from umad_common.plugins import registered_class
 
-METRICS: dict[str, type[DifferenceMetric]] = {
-    cls.name: cls for cls in (AbsDifference, MseDifference, SsimDifference, PerceptualDifference, TemporalDifference)
+METRICS: dict[str, type[DifferenceMetric] | str] = {
+    "abs": AbsDifference,
+    "mse": MseDifference,
+    "ssim": SsimDifference,
+    "perceptual": "umad_common.differences.perceptual:PerceptualDifference",  # torch: imported on use
+    "temporal": TemporalDifference,
 }
 
 
@@ -61,7 +64,6 @@ __all__ = [
     "DifferenceMetric",
     "MetricOptions",
     "MseDifference",
-    "PerceptualDifference",
     "SsimDifference",
     "TemporalDifference",
     "UnknownMetricError",

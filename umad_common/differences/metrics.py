@@ -24,10 +24,12 @@ class DifferenceInputError(ValueError):
 
 @dataclass(frozen=True)
 class MetricOptions:
-    """What a metric may need beyond the frame: weight files (already resolved to absolute paths)."""
+    """What a metric may need beyond the frame: weight files (already resolved to absolute paths) and
+    the CPU threads a metric that runs a network may use."""
 
     vgg_weights: Path | None = None
     features: Path | None = None
+    threads: int = 1
 
 
 def validate_frame(target: np.ndarray, recon: np.ndarray, preds: np.ndarray, pred_valid: np.ndarray) -> tuple[int, int]:

@@ -27,6 +27,7 @@ class PerceptualDifference(DifferenceMetric):
 
     @classmethod
     def from_options(cls, options: MetricOptions) -> PerceptualDifference:
+        torch.set_num_threads(options.threads)
         if options.vgg_weights is not None:
             from umad_common.models.vgg16 import load_vgg16_features
 

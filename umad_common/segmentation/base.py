@@ -19,6 +19,15 @@ from umad_common.operator import Context, Frame
 TUNED = "chosen on validation seed 2 (best refined AP) by `umad bench segmenters --tune`"  # provenance
 
 
+def sklearn_cluster() -> Any:
+    """scikit-learn's clustering module, imported when a method that clusters is built, not with this
+    package: the import costs about 0.8 s of CPU, which every replica of a graph (each one loads
+    every operator class to check the wiring) paid at start-up."""
+    import sklearn.cluster
+
+    return sklearn.cluster
+
+
 class NoOptions(BaseModel):
     """Parameters of a method that takes none."""
 

@@ -24,10 +24,16 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from scipy import ndimage
-from sklearn.cluster import DBSCAN
 
 from umad_common.operator import Context, Frame
-from umad_common.segmentation.base import TUNED, SegmenterInputError, SegmenterMethod, input_array, masks_to_labels
+from umad_common.segmentation.base import (
+    TUNED,
+    SegmenterInputError,
+    SegmenterMethod,
+    input_array,
+    masks_to_labels,
+    sklearn_cluster,
+)
 
 Triplet = tuple[float, float, float]
 
@@ -175,6 +181,7 @@ class Geometry(SegmenterMethod):
         self.rest = cls.from_options(p.rest_options, context) if cls else None
         self.options_rig = SensorRig(p.image_size[0], p.image_size[1], p.fov, p.camera_location, p.lidar_location)
         self.assumed_runs: set[str] = set()  # auto calibration: runs already warned about
+        self.dbscan = sklearn_cluster().DBSCAN
 
     @classmethod
     def required_inputs(cls, params: BaseModel) -> set[str]:
@@ -235,7 +242,7 @@ class Geometry(SegmenterMethod):
         above = xyz @ plane[:3] + plane[3] >= p.ground_height
         labels = np.full(len(xyz), -2, np.int64)  # -2 ground, -1 unclustered, >= 0 object
         if above.sum() >= p.cluster_min_points:
-            labels[above] = DBSCAN(eps=p.cluster_eps, min_samples=p.cluster_min_points).fit_predict(xyz[above])
+            labels[above] = self.dbscan(eps=p.cluster_eps, min_samples=p.cluster_min_points).fit_predict(xyz[above])
         else:
             labels[above] = -1
         count = int(labels.max()) + 1

@@ -12,11 +12,16 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 from skimage.color import rgb2lab
 from skimage.segmentation import felzenszwalb, slic
-from sklearn.cluster import KMeans
 from threadpoolctl import threadpool_limits
 
 from umad_common.operator import Context, Frame
-from umad_common.segmentation.base import TUNED, SegmenterMethod, connected_regions, labels_to_masks
+from umad_common.segmentation.base import (
+    TUNED,
+    SegmenterMethod,
+    connected_regions,
+    labels_to_masks,
+    sklearn_cluster,
+)
 
 
 class Felzenszwalb(SegmenterMethod):
@@ -121,7 +126,9 @@ def kmeans_masks(features: np.ndarray, clusters: int, min_area: int, fit_stride:
     h, w, channels = features.shape
     sample = features[::fit_stride, ::fit_stride].reshape(-1, channels)
     with threadpool_limits(1):  # ~25k points: thread start-up costs more than it saves
-        kmeans = KMeans(n_clusters=min(clusters, len(sample)), n_init=1, max_iter=50, random_state=seed)
+        kmeans = sklearn_cluster().KMeans(
+            n_clusters=min(clusters, len(sample)), n_init=1, max_iter=50, random_state=seed
+        )
         kmeans.fit(sample)
         assignment = kmeans.predict(features.reshape(-1, channels))
     regions = connected_regions(assignment.reshape(h, w))
@@ -162,6 +169,7 @@ class KMeansSegments(SegmenterMethod):
     def __init__(self, params: BaseModel, context: Context):
         super().__init__(params, context)
         p = self.params
+        sklearn_cluster()  # at start-up, not on the first frame
         self.net_features = None
         if p.features == "feature_net":
             if not p.feature_net:
