@@ -1,7 +1,10 @@
+import subprocess
+import sys
+
 import pytest
 import yaml
 
-from tests.conftest import run_umad
+from tests.conftest import REPO, run_umad, umad_env
 from umad_common.graph import GraphError, load_graph, validate_graph
 
 SOURCE = {"id": "src", "uses": "tests.toy_ops:CounterSource"}
@@ -136,3 +139,17 @@ def test_a_segmenter_option_is_set_by_its_dotted_name():
     assert g.with_params({"seg": {"options.n_segments": 50}}).op("seg").params["options"] == {"n_segments": 50}
     with pytest.raises(GraphError, match="method 'slic' options: n_segments"):
         g.with_params({"seg": {"options.n_segments": 0}})
+
+
+def test_checking_the_default_graph_imports_neither_torch_nor_scikit_learn():
+    """Every replica loads the whole graph to check its wiring: what an operator module imports at
+    its top, all 14 replicas pay at start-up (torch and scikit-learn were 3 s of CPU each)."""
+    probe = (
+        "import sys; from umad_common.graph import load_graph; load_graph('graph.yaml'); "
+        "print(sorted(m for m in ('torch', 'sklearn') if m in sys.modules))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, env=umad_env(), cwd=REPO
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
