@@ -94,9 +94,16 @@ def to_markdown(results: dict) -> str:
     lines = ["| bench | measure | value |", "|---|---|---|"]
     for bench, res in results.items():
         for key, value in _flatten(res):
-            text = f"{value:.4g}" if isinstance(value, float) else str(value)
-            lines.append(f"| {bench} | {key} | {text} |")
+            lines.append(f"| {bench} | {key} | {_text(value)} |")
     return "\n".join(lines)
+
+
+def _text(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, list):
+        return ", ".join(_text(v) for v in value)
+    return str(value)
 
 
 def _flatten(obj: dict, prefix: str = ""):
