@@ -97,12 +97,19 @@ class SourceDriver:
         return sf
 
     def _wait_for_graph(self) -> None:
-        """Frames sent before every operator subscribed would be lost to them: wait for all tokens."""
-        wanted = {op.id for op in self.rt.graph.spec.operators}
+        """Frames sent before every operator subscribed would be lost to them: wait for all tokens,
+        every replica's. A replica splits frames with the siblings it sees (seq modulo their
+        number), so a frame sent after one replica saw a sibling's token but before that sibling
+        subscribed would be nobody's until its re-send, `ack_timeout_s` later (a 16 s stall in
+        `umad bench scaling` with two VGG16 replicas, when only one replica per operator was awaited)."""
+        wanted = {op.id: op.replicas for op in self.rt.graph.spec.operators}
         deadline = time.monotonic() + LIVE_WAIT_S
         while not self.rt.shutdown.is_set():
             self.rt.handle_service()
-            missing = wanted - self.rt.members.ops()
+            live = self.rt.members.live
+            missing = [
+                f"{op} ({len(live.get(op, ()))} of {n})" for op, n in wanted.items() if len(live.get(op, ())) < n
+            ]
             if not missing:
                 time.sleep(0.2)  # let liveliness-triggered subscriptions settle at the hub
                 return
