@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from umad_common import DEFAULT_GRAPH
-from umad_common.benchmarks.pipeline import joined_inputs, stage_times, topological_order
+from umad_common.benchmarks.pipeline import joined_inputs, stage_times, topological_order, work_with_every_core_busy
 from umad_common.delivery import FrameJoiner, Stats
 from umad_common.graph import load_graph
 from umad_common.launcher import summary_table
@@ -90,3 +90,32 @@ def test_a_replica_process_runs_numpy_blas_on_one_thread():
     before, after = json.loads(result.stdout)
     assert before and max(before) == 2  # the probe sees numpy's BLAS with the threads the environment allows
     assert set(after) == {1}
+
+
+def blob_chain(relay_params: dict) -> dict:
+    return {
+        "name": "chain",
+        "operators": [
+            {
+                "id": "blobs",
+                "uses": "umad_common.benchmarks.bus:BlobSource",
+                "params": {"frames": 5, "size_bytes": 4096},
+            },
+            {
+                "id": "relay",
+                "uses": "umad_common.benchmarks.bus:Relay",
+                "inputs": {"blob": "blobs/blob"},
+                "params": relay_params,
+            },
+            {"id": "sink", "uses": "umad_common.benchmarks.bus:BlobSink", "inputs": {"blob": "relay/blob"}},
+        ],
+    }
+
+
+def test_every_core_busy_pass_runs_the_whole_chain_in_each_process_and_names_a_failure():
+    passes = work_with_every_core_busy(blob_chain({}), 2)
+    assert len(passes) == 2
+    for result in passes:
+        assert set(result["cpu_ms"]) == {"blobs", "relay", "sink"} and result["fps"] > 0
+    with pytest.raises(RuntimeError, match="no_such_param"):
+        work_with_every_core_busy(blob_chain({"no_such_param": 1}), 2)

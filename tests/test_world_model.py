@@ -341,6 +341,31 @@ def test_training_writes_weights_is_deterministic_and_resumes(tiny_benchmark, tm
         train(tmp_path / "b", epochs=2, resume=True)
 
 
+def test_training_rollouts_start_from_consecutive_posterior_states_and_match_their_targets():
+    from umad_common.training.train_world_model import (
+        TrainConfig,
+        open_loop_predictions,
+        prediction_targets,
+        rollout_starts,
+    )
+
+    model = tiny_model()
+    obs, actions = random_observation(model.config, b=2, t=6)
+    train = TrainConfig(sequence_length=6, prediction_steps=2, prediction_starts=3)
+    assert list(rollout_starts(6, train)) == [1, 2, 3]  # the last start leaves 2 frames: 4 and 5
+    frames = torch.arange(6.0).view(1, 6, 1, 1, 1)
+    assert prediction_targets(frames, train).flatten().tolist() == [2, 3, 3, 4, 4, 5]
+    with torch.no_grad():
+        result = model.observe(obs, actions)
+        predicted = open_loop_predictions(model, result, actions, train)
+        assert predicted.shape == (2, 6, 3, model.config.image_height, model.config.image_width)
+        start = State(result.states.h[:, 2], result.states.z[:, 2])  # the second rollout, on its own
+        alone = model.imagine(start, actions[:, 3:5]).rgb
+    assert torch.allclose(predicted[:, 2:4], alone, atol=1e-6)
+    with pytest.raises(ValueError, match="prediction_starts 5"):
+        TrainConfig(sequence_length=6, prediction_steps=2, prediction_starts=5)
+
+
 def test_evaluation_reports_psnr_per_step_and_anomaly_road_ratio(tiny_benchmark):
     from umad_common.training.evaluate_world_model import evaluate_world_model
 

@@ -6,6 +6,10 @@ sink. The ratio is frames/s with 2 replicas over frames/s with 1, on the same ma
 for both extractors: the shipped label-free feature net (so light that the bus, not the worker,
 sets the pace) and ImageNet VGG16 (the paper's; randomly initialised weights in torchvision's
 format, which cost exactly what ImageNet ones do).
+
+Next to each ratio, the machine's own: the same source, worker and sink in one process
+(`work_per_frame`, no bus), once alone and then in two processes at once. Their frames/s together
+over one's alone is what two cores give this work before any dataflow cost.
 """
 
 from __future__ import annotations
@@ -17,8 +21,11 @@ import numpy as np
 from pydantic import Field
 
 from umad_common.benchmarks.graphs import run_bench_graph
+from umad_common.benchmarks.pipeline import work_per_frame, work_with_every_core_busy
+from umad_common.graph import validate_graph
 from umad_common.operator import Output, Source, SourceFrame
 from umad_common.pacing import SourceParams
+from umad_common.runtime import one_blas_thread
 
 
 class WorldModelFrames(Source):
@@ -80,11 +87,17 @@ def compare_replicas(frames: int, hub: str, vgg_weights: str | None = None) -> d
     one = run_bench_graph(scaling_graph(1, frames, hub, vgg_weights))
     two = run_bench_graph(scaling_graph(2, frames, hub, vgg_weights))
     per_replica = {k: v["frames_in"] for k, v in two["stats"].items() if k.startswith("diff_perceptual")}
+    in_process = scaling_graph(1, frames, hub, vgg_weights)
+    with one_blas_thread():
+        alone = work_per_frame(validate_graph(in_process))
+    together = work_with_every_core_busy(in_process, 2)
     return {
         "replicas_1": {k: one[k] for k in ("fps", "p50_ms", "p99_ms")},
         "replicas_2": {k: two[k] for k in ("fps", "p50_ms", "p99_ms")},
         "frames_per_replica_with_2": per_replica,
         "fps_ratio_2_over_1": two["fps"] / one["fps"],
+        "in_process_fps": {"alone": alone["fps"], "two_processes": [t["fps"] for t in together]},
+        "in_process_ratio_2_over_1": sum(t["fps"] for t in together) / alone["fps"],
     }
 
 

@@ -53,6 +53,8 @@ class TrainConfig:
     #   its mean; the mean trains faster and sharper, the KL still prices every nat it moves from the prior
     prediction_steps: int = 3  # open-loop prior rollout per window, ending at its last frame, whose decoded
     #   frames are trained like reconstructions (the predictions x̂_{t|t-k} the temporal map compares)
+    prediction_starts: int = 1  # rollouts per window, from consecutive posterior states: the last
+    #   `prediction_starts` states that leave `prediction_steps` frames after them
     prediction_weight: float = 1.0  # weight of that prediction loss next to the reconstruction loss
     ssim_weight: float = 0.2  # weight of the 1 - SSIM loss (structure: edges, texture) next to the L1
     holdout: int = 1  # last normal drives (sorted) kept out of training for evaluation
@@ -64,6 +66,12 @@ class TrainConfig:
             raise ValueError(
                 f"prediction_steps {self.prediction_steps} must be at least 1 and below sequence_length "
                 f"{self.sequence_length} (the rollout starts from a posterior state inside the window)"
+            )
+        if not 1 <= self.prediction_starts <= self.sequence_length - self.prediction_steps:
+            raise ValueError(
+                f"prediction_starts {self.prediction_starts} must be between 1 and sequence_length - prediction_steps "
+                f"= {self.sequence_length - self.prediction_steps} (each rollout starts from a posterior state "
+                "that leaves prediction_steps frames after it)"
             )
 
 
@@ -207,14 +215,14 @@ def world_model_loss(
 
     The L1 is the same per-pixel |x - x̂| the absolute difference map measures: it keeps lane marks
     sharp instead of averaging them away; the SSIM term asks for the local structure (edges,
-    texture) the SSIM map compares. `predicted` (B, prediction_steps, 3, H, W) are the window's last
-    frames as the prior drew them from the posterior state before them: without this term only the
+    texture) the SSIM map compares. `predicted` (B, starts x steps, 3, H, W) are frames of the window
+    as the prior drew them from earlier posterior states (`open_loop_predictions`): without this term only the
     KL teaches the prior, and the posterior can make it cheap by widening both distributions. The KL
     is summed over the latent map, so the posterior pays for every cell where it departs from what
     the prior expected. The MSE is reported for the PSNR."""
     recon, rgb_l1, rgb_ssim, rgb_mse = image_loss(result.rgb, obs.rgb, train)
     terms = {"rgb_l1": rgb_l1, "rgb_ssim": rgb_ssim, "rgb_mse": rgb_mse}
-    prediction, _, _, pred_mse = image_loss(predicted, obs.rgb[:, -predicted.shape[1] :], train)
+    prediction, _, _, pred_mse = image_loss(predicted, prediction_targets(obs.rgb, train), train)
     terms["pred_mse"] = pred_mse
     post = (result.post_mean.float(), result.post_std.float())
     prior = (result.prior_mean.float(), result.prior_std.float())
@@ -227,12 +235,28 @@ def world_model_loss(
     return terms
 
 
-def open_loop_predictions(model: WorldModel, result: ObserveResult, prev_actions: torch.Tensor, steps: int):
-    """The prior rolled `steps` steps from the posterior state `steps + 1` before each window's end,
-    with the actions taken: (B, steps, 3, H, W) predictions of the window's last `steps` frames."""
-    start = result.states.h.shape[1] - 1 - steps
-    state = State(result.states.h[:, start], result.states.z[:, start])
-    return model.imagine(state, prev_actions[:, start + 1 : start + 1 + steps]).rgb
+def rollout_starts(length: int, train: TrainConfig) -> range:
+    """Window indices of the posterior states the open-loop rollouts start from."""
+    first = length - train.prediction_steps - train.prediction_starts
+    return range(first, first + train.prediction_starts)
+
+
+def open_loop_predictions(model: WorldModel, result: ObserveResult, prev_actions: torch.Tensor, train: TrainConfig):
+    """The prior rolled `prediction_steps` steps from each start state (`rollout_starts`) with the
+    actions taken, all rollouts in one batch: (B, starts x steps, 3, H, W), start by start."""
+    starts = rollout_starts(result.states.h.shape[1], train)
+    steps = train.prediction_steps
+    h = torch.stack([result.states.h[:, s] for s in starts], 1).flatten(0, 1)  # (B * starts, deter_dim)
+    z = torch.stack([result.states.z[:, s] for s in starts], 1).flatten(0, 1)
+    actions = torch.stack([prev_actions[:, s + 1 : s + 1 + steps] for s in starts], 1).flatten(0, 1)
+    rgb = model.imagine(State(h, z), actions).rgb  # (B * starts, steps, 3, H, W)
+    return rgb.view(prev_actions.shape[0], len(starts) * steps, *rgb.shape[2:])
+
+
+def prediction_targets(rgb: torch.Tensor, train: TrainConfig) -> torch.Tensor:
+    """The frames `open_loop_predictions` predicts, in its order, from (B, T, 3, H, W)."""
+    steps = train.prediction_steps
+    return torch.cat([rgb[:, s + 1 : s + 1 + steps] for s in rollout_starts(rgb.shape[1], train)], 1)
 
 
 def psnr(mse: float) -> float:
@@ -314,7 +338,7 @@ def train_world_model(
             obs = scale_speed(obs, model_config)
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
                 result = model.observe(obs, prev_actions, sample=train.sample_posterior)
-                predicted = open_loop_predictions(model, result, prev_actions, train.prediction_steps)
+                predicted = open_loop_predictions(model, result, prev_actions, train)
             terms = world_model_loss(result, predicted, obs, train)
             optimizer.zero_grad(set_to_none=True)
             terms["loss"].backward()
