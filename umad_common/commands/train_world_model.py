@@ -17,7 +17,7 @@ import shlex
 from dataclasses import asdict
 from pathlib import Path
 
-DEFAULT_EPOCHS = 25
+DEFAULT_EPOCHS = 35
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
