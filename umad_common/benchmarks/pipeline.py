@@ -11,7 +11,8 @@ so the drift shows). Then the graph itself, as processes on a hub: frames/s (fra
 source's first-send-to-last-ack time, start-up excluded), end-to-end latency from the replayer's
 send to the accumulator's ack (p50/p99), their ratio to the bound, and per operator where a frame's
 time went (the stats every replica publishes, see `umad_common.delivery.Stats`), so the operator to
-replicate or move to another machine is visible.
+replicate or move to another machine is visible. `operators_cpu_ms_per_frame` sets the
+operators' own CPU per frame in the graph next to the in-process passes'.
 
 The bound assumes a core's work costs the same whether or not the other cores are busy. Cores of
 a virtual machine share caches, a memory bus or a physical core, so a last pass runs the in-process
@@ -85,6 +86,11 @@ def bench_pipeline(frames: int = 30, hub: str = "tcp/127.0.0.1:7449", graph: Pat
         "bound_fps_every_core_busy": busy_bound_fps,
         "fps_ratio_to_every_core_busy_bound": result["fps"] / busy_bound_fps,
         "in_process_fps_every_core_busy": sum(b["fps"] for b in busy),
+        "operators_cpu_ms_per_frame": {
+            "alone": sum(work["cpu_ms"].values()),
+            "every_core_busy": sum(busy_cpu_ms.values()),
+            "graph": sum(stage_times(result["stats"], op)["cpu_ms"] or 0.0 for op in work["cpu_ms"]),
+        },
         "cores_used": graph_cpu_s / source["busy_s"],
         "work_share_of_graph_cpu": result["frames"] * sum(work["cpu_ms"].values()) / 1e3 / graph_cpu_s,
         "in_process_fps": work["fps"],
