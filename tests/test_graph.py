@@ -70,6 +70,15 @@ def test_replicas_below_one():
     assert "operator 'scale': replicas must be >= 1, got 0" in problems(graph(SOURCE, {**SCALE, "replicas": 0}))
 
 
+def test_shared_memory_pool_is_checked_and_reaches_the_zenoh_config():
+    from umad_common.bus import zenoh_config
+
+    assert "shm_pool_mib" in problems(graph(SOURCE, shm_pool_mib=0))
+    assert validate_graph(graph(SOURCE, shm_pool_mib=4)).spec.shm_pool_mib == 4
+    pool = zenoh_config("client", shm_pool_mib=4).get_json("transport/shared_memory/transport_optimization/pool_size")
+    assert int(pool) == 4 << 20
+
+
 def test_unknown_keys_are_refused():
     assert "operator 'scale': key 'replica'" in problems(graph(SOURCE, {**SCALE, "replica": 2}))
     assert "key 'operatorz'" in problems({"operatorz": []})

@@ -99,6 +99,17 @@ def test_toy_graph_delivers_every_frame_exactly_once(tmp_path, hub_endpoint):
     assert "-" not in sink  # where the sink's time went: CPU, runtime, join wait, queue, transport
 
 
+def test_messages_larger_than_the_graphs_shared_memory_pool_arrive_exactly_once(tmp_path, hub_endpoint):
+    path = toy_graph(tmp_path, hub_endpoint, frames=10)
+    data = yaml.safe_load(path.read_text())
+    data["shm_pool_mib"] = 1
+    data["operators"][0]["params"]["size"] = 600_000  # 2.4 MB per message: never fits, takes the hub's socket
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    result = run_umad("launch", str(path), timeout=120)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert_exactly_once(tmp_path, 10)
+
+
 def test_sigkill_of_a_replica_loses_and_duplicates_nothing(tmp_path, hub_endpoint):
     graph = toy_graph(tmp_path, hub_endpoint, frames=60, delay=0.03)
     proc = start_umad("launch", str(graph))

@@ -43,14 +43,19 @@ def zenoh_config(
     tls: TlsConfig | None = None,
     shared_memory: bool = True,
     retry: bool = True,
+    shm_pool_mib: int | None = None,
 ) -> zenoh.Config:
     """The one place every Zenoh config is built. `retry=False`: a client that finds no hub fails
-    at once instead of waiting for one (a command to a graph that is not running)."""
+    at once instead of waiting for one (a command to a graph that is not running). `shm_pool_mib`:
+    the session's shared-memory pool for large messages (Zenoh's default: 16 MiB); a message that
+    finds no room in it goes through the hub's socket."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
     if not shared_memory:
         conf.insert_json5("transport/shared_memory/enabled", "false")
+    if shm_pool_mib is not None:
+        conf.insert_json5("transport/shared_memory/transport_optimization/pool_size", str(shm_pool_mib << 20))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     if connect:
@@ -79,15 +84,18 @@ def open_client(
     timeout_s: float | None = None,
     shared_memory: bool = True,
     retry: bool = True,
+    shm_pool_mib: int | None = None,
 ) -> zenoh.Session | None:
     """A client session connected to the hub at `endpoint`, waiting for the hub as long as it takes.
 
     With `cancel` or `timeout_s`, the wait happens off the main thread so a signal can end it, or
     it gives up after `timeout_s`: returns None then. `shared_memory=False` for a session that
     outlives the processes it sweeps up after (the launcher): a segment it maps could never go.
-    `retry=False`: no hub listening returns None at once.
+    `retry=False`: no hub listening returns None at once. `shm_pool_mib` as in `zenoh_config`.
     """
-    conf = zenoh_config("client", connect=[endpoint], tls=tls, shared_memory=shared_memory, retry=retry)
+    conf = zenoh_config(
+        "client", connect=[endpoint], tls=tls, shared_memory=shared_memory, retry=retry, shm_pool_mib=shm_pool_mib
+    )
     if cancel is None and timeout_s is None:
         return zenoh.open(conf)
     cancel = cancel or threading.Event()

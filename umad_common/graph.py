@@ -61,6 +61,12 @@ class GraphSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
     name: str = Field("umad", pattern=r"^[A-Za-z0-9_\-]+$")
     hub: str = DEFAULT_HUB
+    shm_pool_mib: int | None = Field(
+        None,
+        ge=1,
+        description="each replica's Zenoh shared-memory pool for large messages, MiB (default Zenoh's 16); "
+        "a message that finds no room goes through the hub's socket",
+    )
     tls: TlsSpec | None = None
     base_dir: str | None = Field(
         None, description="folder that relative paths in params resolve against (default: the graph file's)"

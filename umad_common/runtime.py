@@ -558,7 +558,7 @@ def run_operator(
     one_blas_thread()
     shutdown = ShutdownSignal()
     tls = graph.tls_config()
-    session = open_client(connect or graph.spec.hub, tls, cancel=shutdown.event)
+    session = open_client(connect or graph.spec.hub, tls, cancel=shutdown.event, shm_pool_mib=graph.spec.shm_pool_mib)
     if session is None:
         log.info("stopped while waiting for the hub at %s", connect or graph.spec.hub)
         _exit(0)

@@ -88,13 +88,14 @@ def chain_in_process(frames: int, size_bytes: int) -> dict:
     }
 
 
-def over_bus(frames: int, size_bytes: int, hub: str, window: int) -> dict:
+def over_bus(frames: int, size_bytes: int, hub: str, window: int, shm_pool_mib: int | None = None) -> dict:
     """source -> relay -> sink as three processes on a hub; latency is send-to-ack at the source;
     CPU is the three processes' from their first frame on (the hub's not counted)."""
     result = run_bench_graph(
         {
             "name": "bench",
             "hub": hub,
+            "shm_pool_mib": shm_pool_mib,
             "operators": [
                 {
                     "id": "source",
@@ -110,14 +111,18 @@ def over_bus(frames: int, size_bytes: int, hub: str, window: int) -> dict:
     return {**result, "cpu_ms_per_frame": 1e3 * cpu_s / frames}
 
 
-def bench_bus(frames: int = 300, size_bytes: int = 1 << 20, hub: str = "tcp/127.0.0.1:7449") -> dict:
+def bench_bus(
+    frames: int = 300, size_bytes: int = 1 << 20, hub: str = "tcp/127.0.0.1:7449", shm_pool_mib: int | None = None
+) -> dict:
+    """`shm_pool_mib`: the graph's `shm_pool_mib` (None: Zenoh's default pool)."""
     local = in_process(frames, size_bytes)
-    bus = over_bus(frames, size_bytes, hub, window=8)
-    bus1 = over_bus(frames, size_bytes, hub, window=1)
+    bus = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib)
+    bus1 = over_bus(frames, size_bytes, hub, window=1, shm_pool_mib=shm_pool_mib)
     keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame")
     return {
         "frames": frames,
         "frame_bytes": size_bytes,
+        "shm_pool_mib": shm_pool_mib,
         "in_process": local,
         "bus_window_8": {k: bus[k] for k in keep},
         "bus_window_1": {k: bus1[k] for k in keep},

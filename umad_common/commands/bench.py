@@ -22,6 +22,9 @@ def add_arguments(parser):
     parser.add_argument("--pixels", type=int, default=10**8, help="pixels for the metrics bench")
     parser.add_argument("--hub", default="tcp/127.0.0.1:7449", help="loopback endpoint the bench graphs use")
     parser.add_argument(
+        "--shm-pool-mib", type=int, default=None, help="bus: the graph's `shm_pool_mib` (default: Zenoh's 16 MiB)"
+    )
+    parser.add_argument(
         "--data", type=Path, default=None, help="segmenters, control: AnoVox drives (default: generated)"
     )
     parser.add_argument("--tune", action="store_true", help="segmenters: measure a parameter grid per method")
@@ -53,7 +56,7 @@ def _run_one(name: str, args) -> dict:
     if name == "bus":
         from umad_common.benchmarks.bus import bench_bus
 
-        return bench_bus(frames=args.frames or 300, hub=args.hub)
+        return bench_bus(frames=args.frames or 300, hub=args.hub, shm_pool_mib=args.shm_pool_mib)
     if name == "metrics":
         from umad_common.benchmarks.metrics import bench_metrics
 
