@@ -60,11 +60,9 @@ def bench_pipeline(frames: int = 30, hub: str = "tcp/127.0.0.1:7449", graph: Pat
         if op.get("kind") == "replayer":
             op.setdefault("params", {}).update({"source": str(data / "anomalous"), "every": 1})
     graph = validate_graph(graph_data)
-    with one_blas_thread():  # as every replica runs, so the bound counts the same work
-        before = work_per_frame(graph)
+    before = work_per_frame(graph)
     result = run_bench_graph(graph_data)
-    with one_blas_thread():
-        after = work_per_frame(graph)
+    after = work_per_frame(graph)
     cores = len(os.sched_getaffinity(0))
     busy = work_with_every_core_busy(graph_data, cores)
     work = {
@@ -74,6 +72,7 @@ def bench_pipeline(frames: int = 30, hub: str = "tcp/127.0.0.1:7449", graph: Pat
     busy_cpu_ms = {op: sum(b["cpu_ms"][op] for b in busy) / len(busy) for op in work["cpu_ms"]}
     bound_fps = cores / (sum(work["cpu_ms"].values()) / 1e3)
     busy_bound_fps = cores / (sum(busy_cpu_ms.values()) / 1e3)
+    in_graph = {op: stage_times(result["stats"], op) for op in work["cpu_ms"]}
     graph_cpu_s = sum(s.get("process_cpu_s", 0.0) for s in result["stats"].values())
     source = result["stats"][f"{graph.sources()[0]}.r0"]
     return {
@@ -89,7 +88,7 @@ def bench_pipeline(frames: int = 30, hub: str = "tcp/127.0.0.1:7449", graph: Pat
         "operators_cpu_ms_per_frame": {
             "alone": sum(work["cpu_ms"].values()),
             "every_core_busy": sum(busy_cpu_ms.values()),
-            "graph": sum(stage_times(result["stats"], op)["cpu_ms"] or 0.0 for op in work["cpu_ms"]),
+            "graph": sum(times["cpu_ms"] or 0.0 for times in in_graph.values()),
         },
         "cores_used": graph_cpu_s / source["busy_s"],
         "work_share_of_graph_cpu": result["frames"] * sum(work["cpu_ms"].values()) / 1e3 / graph_cpu_s,
@@ -99,7 +98,7 @@ def bench_pipeline(frames: int = 30, hub: str = "tcp/127.0.0.1:7449", graph: Pat
         "wall_s_with_startup": result["wall_s_with_startup"],
         "start_and_stop_s": result["start_and_stop_s"],
         "stages": {
-            op: {"alone_cpu_ms": cpu_ms, "every_core_busy_cpu_ms": busy_cpu_ms[op], **stage_times(result["stats"], op)}
+            op: {"alone_cpu_ms": cpu_ms, "every_core_busy_cpu_ms": busy_cpu_ms[op], **in_graph[op]}
             for op, cpu_ms in work["cpu_ms"].items()
         },
     }
@@ -108,7 +107,13 @@ def bench_pipeline(frames: int = 30, hub: str = "tcp/127.0.0.1:7449", graph: Pat
 def work_per_frame(graph: Graph, ready: Callable[[], object] | None = None) -> dict:
     """Every operator of `graph` run in this process on the source's frames: CPU ms per frame of
     each one's own work (a source's: producing the frame), and the frames/s of the whole chain.
-    `ready` is called once every operator is built, before the first frame."""
+    BLAS runs on one thread, as in every replica, so the pass counts the same work. `ready` is
+    called once every operator is built, before the first frame."""
+    with one_blas_thread():
+        return _chain_in_this_process(graph, ready)
+
+
+def _chain_in_this_process(graph: Graph, ready: Callable[[], object] | None) -> dict:
     ops: dict[str, Operator] = {
         spec.id: graph.classes[spec.id](spec.params, Context(spec.id, 0, graph.name, graph.base_dir))
         for spec in graph.spec.operators
@@ -177,8 +182,7 @@ def work_with_every_core_busy(graph_data: dict, copies: int) -> list[dict]:
 
 def _pass_in_child(graph_data: dict, barrier, results) -> None:
     try:
-        with one_blas_thread():
-            results.put(work_per_frame(validate_graph(graph_data), ready=barrier.wait))
+        results.put(work_per_frame(validate_graph(graph_data), ready=barrier.wait))
     except BaseException as exc:  # reported to the parent, which would otherwise wait forever
         barrier.abort()
         results.put(f"{type(exc).__name__}: {exc}")

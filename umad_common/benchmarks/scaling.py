@@ -25,7 +25,6 @@ from umad_common.benchmarks.pipeline import work_per_frame, work_with_every_core
 from umad_common.graph import validate_graph
 from umad_common.operator import Output, Source, SourceFrame
 from umad_common.pacing import SourceParams
-from umad_common.runtime import one_blas_thread
 
 
 class WorldModelFrames(Source):
@@ -84,13 +83,12 @@ def random_vgg16_file() -> str:
 
 
 def compare_replicas(frames: int, hub: str, vgg_weights: str | None = None) -> dict:
-    one = run_bench_graph(scaling_graph(1, frames, hub, vgg_weights))
+    single = scaling_graph(1, frames, hub, vgg_weights)
+    one = run_bench_graph(single)
     two = run_bench_graph(scaling_graph(2, frames, hub, vgg_weights))
     per_replica = {k: v["frames_in"] for k, v in two["stats"].items() if k.startswith("diff_perceptual")}
-    in_process = scaling_graph(1, frames, hub, vgg_weights)
-    with one_blas_thread():
-        alone = work_per_frame(validate_graph(in_process))
-    together = work_with_every_core_busy(in_process, 2)
+    alone = work_per_frame(validate_graph(single))
+    together = work_with_every_core_busy(single, 2)
     return {
         "replicas_1": {k: one[k] for k in ("fps", "p50_ms", "p99_ms")},
         "replicas_2": {k: two[k] for k in ("fps", "p50_ms", "p99_ms")},
