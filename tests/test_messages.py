@@ -21,7 +21,9 @@ arrays = dtypes.flatmap(lambda dt: hnp.arrays(dt, hnp.array_shapes(min_dims=0, m
 )
 def test_round_trip(run, seq, stamp, meta, arrs):
     msg = Message(run, seq, stamp, "producer", meta, arrs)
-    back = decode(encode(msg))
+    payload = encode(msg)
+    assert msgpack.packb(msgpack.unpackb(payload), use_bin_type=True) == payload  # plain msgpack, smallest forms
+    back = decode(payload)
     assert (back.run, back.seq, back.stamp_ns, back.producer, back.meta) == (run, seq, stamp, "producer", meta)
     assert set(back.arrays) == set(arrs)
     for name, arr in arrs.items():

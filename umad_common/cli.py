@@ -11,6 +11,8 @@ import importlib
 import logging
 import sys
 
+from umad_common.allocator import keep_freed_memory
+
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("launch",): ("umad_common.commands.launch", "start the graph: hub plus one process per operator replica"),
     ("graph", "check"): ("umad_common.commands.graph_check", "validate a graph.yaml"),
@@ -53,6 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    keep_freed_memory()
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(

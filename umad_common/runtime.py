@@ -44,6 +44,7 @@ import zenoh
 from pydantic import ValidationError
 from threadpoolctl import threadpool_limits
 
+from umad_common.allocator import keep_freed_memory
 from umad_common.assignments import GraphError, merge_params, parse_sets
 from umad_common.bus import Keys, ShutdownSignal, answer, close_session, open_client
 from umad_common.delivery import FrameJoiner, Membership, OutputCache, Stats
@@ -556,6 +557,7 @@ def run_operator(
     killed). With the hub gone, Zenoh's threads would hold up a normal exit as well.
     """
     one_blas_thread()
+    keep_freed_memory()
     shutdown = ShutdownSignal()
     tls = graph.tls_config()
     session = open_client(connect or graph.spec.hub, tls, cancel=shutdown.event, shm_pool_mib=graph.spec.shm_pool_mib)

@@ -14,6 +14,7 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 from pydantic import Field
 
+from umad_common.allocator import keep_freed_memory
 from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.launcher import OPERATOR_NICENESS
 from umad_common.messages import Message, decode, encode
@@ -59,10 +60,16 @@ class BlobSink(Operator):
 
 
 def in_process(frames: int, size_bytes: int) -> dict:
-    """The same chain in a child process niced as the launcher nices operators."""
+    """The same chain in a child process set up as a replica: niced as the launcher nices
+    operators, its allocator keeping freed memory (`keep_freed_memory`)."""
     spawn = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(1, mp_context=spawn, initializer=os.nice, initargs=(OPERATOR_NICENESS,)) as pool:
+    with ProcessPoolExecutor(1, mp_context=spawn, initializer=_as_a_replica) as pool:
         return pool.submit(chain_in_process, frames, size_bytes).result()
+
+
+def _as_a_replica() -> None:
+    os.nice(OPERATOR_NICENESS)
+    keep_freed_memory()
 
 
 def chain_in_process(frames: int, size_bytes: int) -> dict:

@@ -39,6 +39,7 @@ from pathlib import Path
 import yaml
 
 from umad_common import DEFAULT_GRAPH
+from umad_common.allocator import keep_freed_memory
 from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.graph import Graph, validate_graph
 from umad_common.messages import Message
@@ -107,8 +108,9 @@ def bench_pipeline(frames: int = 30, hub: str = "tcp/127.0.0.1:7449", graph: Pat
 def work_per_frame(graph: Graph, ready: Callable[[], object] | None = None) -> dict:
     """Every operator of `graph` run in this process on the source's frames: CPU ms per frame of
     each one's own work (a source's: producing the frame), and the frames/s of the whole chain.
-    BLAS runs on one thread, as in every replica, so the pass counts the same work. `ready` is
-    called once every operator is built, before the first frame."""
+    BLAS runs on one thread and the allocator keeps freed memory, as in every replica, so the pass
+    counts the same work. `ready` is called once every operator is built, before the first frame."""
+    keep_freed_memory()
     with one_blas_thread():
         return _chain_in_this_process(graph, ready)
 

@@ -1,0 +1,40 @@
+"""How a UMAD process asks the C allocator to keep the memory it frees for its next frame.
+
+glibc serves every request of 128 KiB or more (the bytes of a 1 MiB frame message, a numpy
+temporary the size of a camera image) with a fresh `mmap`, unmaps it when it is freed, and gives
+the top of its heap back to the kernel whenever 128 KiB lie free there. A process that handles a
+stream of frames then pays a page fault for every 4 KiB of every such buffer, frame after frame:
+on 2 cores, encoding one 1 MiB frame message took 1.26 ms, of which a copy of the bytes is 0.04 ms.
+With large buffers served from the heap and the heap kept, the memory a frame freed is there for
+the next one (0.40 ms). `keep_freed_memory` says so once at process start: every `umad` command and
+every operator replica call it. A process keeps at most `TRIM_THRESHOLD_BYTES` of freed memory.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import logging
+
+M_TRIM_THRESHOLD = -1  # glibc's mallopt parameter numbers (malloc.h)
+M_MMAP_THRESHOLD = -3
+MMAP_THRESHOLD_BYTES = 32 << 20  # glibc's largest allowed value: smaller requests come from the heap
+TRIM_THRESHOLD_BYTES = 256 << 20  # free memory the heap keeps at its top before returning it
+
+log = logging.getLogger("umad.allocator")
+
+
+def keep_freed_memory() -> bool:
+    """Raise this process's glibc mmap and trim thresholds; False where the C library is not glibc
+    (musl, macOS): nothing changes there."""
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError, TypeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    done = mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES) == 1 and mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES) == 1
+    if not done:
+        log.debug("mallopt refused the thresholds; the allocator keeps its defaults")
+    return done
