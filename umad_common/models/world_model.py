@@ -69,8 +69,6 @@ class WorldModelConfig:
     #   the 3-step predictions were worst at the image's sides (20.6 dB there vs 25.5 in the centre), where
     #   facades pass 2-3 cells per step at 9 m/s, further than a convolution's reach
     motion_channels: int = 32  # width of the motion head that predicts the warp
-    warp_interpolation: str = "bilinear"  # how the warp resamples the state: "bilinear" or "bicubic" (less
-    #   smoothing of what it carries across the steps of a prediction)
     min_std: float = 0.1  # floor of the latent standard deviation
     frame_step: int = 1  # dataset frames per model step the model was trained with
 
@@ -99,8 +97,6 @@ class WorldModelConfig:
             raise ValueError(f"transition_kernel {self.transition_kernel} must be odd")
         if self.max_shift <= 0:
             raise ValueError(f"max_shift {self.max_shift} must be positive (cells per step)")
-        if self.warp_interpolation not in ("bilinear", "bicubic"):
-            raise ValueError(f"warp_interpolation {self.warp_interpolation!r} must be 'bilinear' or 'bicubic'")
 
     @property
     def grid(self) -> tuple[int, int]:
@@ -263,12 +259,9 @@ class MotionWarp(nn.Module):
     bilinearly from where their content was a step before. The head's last layer starts at zero,
     so an untrained warp is the identity and the model learns how far each cell moves."""
 
-    def __init__(
-        self, in_channels: int, hidden: int, max_shift: float, grid: tuple[int, int], interpolation: str = "bilinear"
-    ):
+    def __init__(self, in_channels: int, hidden: int, max_shift: float, grid: tuple[int, int]):
         super().__init__()
         self.max_shift = max_shift
-        self.interpolation = interpolation
         self.net = nn.Sequential(
             nn.Conv2d(in_channels + 2, hidden, 5, padding=2),
             nn.SiLU(),
@@ -291,7 +284,7 @@ class MotionWarp(nn.Module):
         shift = self.max_shift * torch.tanh(self.net(torch.cat([features, position], dim=1)).float())
         source = self.position + shift * self.cell[None, :, None, None]  # where each cell's content was
         return F.grid_sample(
-            maps.float(), source.permute(0, 2, 3, 1), mode=self.interpolation, padding_mode="border", align_corners=True
+            maps.float(), source.permute(0, 2, 3, 1), mode="bilinear", padding_mode="border", align_corners=True
         ).to(maps.dtype)
 
 
@@ -342,9 +335,7 @@ class WorldModel(nn.Module):
         self.lidar_encoder = VectorEncoder(4, c.lidar_channels, c.lidar_rows, c.lidar_width, c.lidar_embed)
         self.route_encoder = VectorEncoder(1, c.route_channels, c.route_size, c.route_size, c.route_embed)
         self.side = nn.Linear(c.lidar_embed + c.route_embed + 1, c.side_channels)  # + speed
-        self.motion = MotionWarp(
-            c.deter_channels + c.stoch_channels + 2, c.motion_channels, c.max_shift, c.grid, c.warp_interpolation
-        )
+        self.motion = MotionWarp(c.deter_channels + c.stoch_channels + 2, c.motion_channels, c.max_shift, c.grid)
         self.gru = ConvGRUCell(c.stoch_channels + 2, c.deter_channels, c.transition_kernel)
         self.prior_net = grid_head(c.deter_channels, c.hidden_channels, 2 * c.stoch_channels)
         embed_channels = c.image_channels[-1] + c.side_channels
