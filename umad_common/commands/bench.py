@@ -72,7 +72,7 @@ def _run_one(name: str, args) -> dict:
     if name == "scaling":
         from umad_common.benchmarks.scaling import bench_scaling
 
-        return bench_scaling(frames=args.frames or 40, hub=args.hub)
+        return bench_scaling(frames=args.frames or 400, hub=args.hub)
     if name == "segmenters":
         from umad_common.benchmarks.segmenters import bench_segmenters
 
