@@ -99,6 +99,21 @@ def test_toy_graph_delivers_every_frame_exactly_once(tmp_path, hub_endpoint):
     assert "-" not in sink  # where the sink's time went: CPU, runtime, join wait, queue, transport
 
 
+def test_a_graph_whose_hub_endpoint_is_taken_refuses_to_start(tmp_path, hub_endpoint):
+    """Another hub on the endpoint (a graph that did not stop): our hub could not listen there and our
+    replicas would join that graph's hub, mixing frames of two graphs. The launcher says so and stops."""
+    from umad_common.bus import open_hub
+
+    other = open_hub(hub_endpoint)
+    try:
+        result = run_umad("launch", str(toy_graph(tmp_path, hub_endpoint)), timeout=60)
+    finally:
+        other.close()
+    assert result.returncode == 1
+    assert f"a hub already listens at {hub_endpoint}" in result.stdout + result.stderr
+    assert not (tmp_path / "sink.jsonl").exists()  # no replica was started
+
+
 def test_messages_larger_than_the_graphs_shared_memory_pool_arrive_exactly_once(tmp_path, hub_endpoint):
     path = toy_graph(tmp_path, hub_endpoint, frames=10)
     data = yaml.safe_load(path.read_text())

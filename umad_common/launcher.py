@@ -28,7 +28,7 @@ from pathlib import Path
 
 import zenoh
 
-from umad_common.bus import Keys, answer, cleanup_stale_shm, open_client
+from umad_common.bus import Keys, answer, cleanup_stale_shm, close_session, open_client
 from umad_common.graph import Graph, GraphError, OperatorSpec, load_graph
 from umad_common.mcap_log import McapRecorder
 from umad_common.runtime import EXIT_CONFIG
@@ -289,8 +289,17 @@ class Launcher:
             log.info("stopping the graph (%s)", signal.Signals(signum).name)
             self._stop.set()
 
-        previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
         tls = self.graph.tls_config()
+        taken = open_client(self.hub, tls, retry=False, timeout_s=HUB_CONNECT_TIMEOUT_S, shared_memory=False)
+        if taken is not None:  # our hub could not listen there, and our replicas would join that one
+            close_session(taken)
+            log.error(
+                "a hub already listens at %s (another graph, or one that did not stop): stop it, or give "
+                "this graph another `hub:` endpoint",
+                self.hub,
+            )
+            return 1
+        previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
         self.hub_replica = Replica("hub", 0, self._hub_command(), False)
         self._spawn(self.hub_replica, niceness=0)
         hub = open_client(self.hub, tls, cancel=self._stop, timeout_s=HUB_CONNECT_TIMEOUT_S, shared_memory=False)
