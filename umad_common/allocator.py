@@ -14,7 +14,6 @@ operator replica call it. A process keeps at most `TRIM_THRESHOLD_BYTES` of free
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import logging
 
 M_TRIM_THRESHOLD = -1  # glibc's mallopt parameter numbers (malloc.h)
@@ -29,11 +28,9 @@ log = logging.getLogger("umad.allocator")
 def keep_freed_memory() -> bool:
     """Raise this process's glibc mmap and trim thresholds; False where the C library is not glibc
     (musl, macOS): nothing changes there."""
-    name = ctypes.util.find_library("c")
     try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError, TypeError):
+        mallopt = ctypes.CDLL(None).mallopt  # the C library this process already runs on
+    except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     done = mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES) == 1 and mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES) == 1
