@@ -341,6 +341,33 @@ def test_training_writes_weights_is_deterministic_and_resumes(tiny_benchmark, tm
         train(tmp_path / "b", epochs=2, resume=True)
 
 
+def test_a_mirrored_window_is_the_drive_mirrored_in_the_world():
+    """Mirroring a training window equals projecting the mirrored world: the lidar of the cloud with
+    y negated, the camera and the route map flipped, the steering negated; twice is the identity."""
+    from umad_common.training.train_world_model import TrainConfig, mirror_window
+
+    config = WorldModelConfig(lidar_rows=64, lidar_width=256)
+    rng = np.random.default_rng(0)
+    points = np.concatenate([rng.uniform(-40, 40, (3000, 2)), rng.uniform(-3, 2, (3000, 1))], 1).astype(np.float32)
+    points = np.concatenate([points, np.ones((3000, 1), np.float32)], 1)
+    lidar = lidar_range_image(points, config)[None]
+    rgb = rng.integers(0, 255, (1, 8, 12, 3), dtype=np.uint8)
+    route = rng.integers(0, 255, (1, 16, 16), dtype=np.uint8)
+    actions = np.array([[0.5, 0.25]], np.float32)
+
+    m_rgb, m_lidar, m_route, m_actions = mirror_window(rgb, lidar, route, actions)
+    np.testing.assert_array_equal(m_lidar[0], lidar_range_image(points * [1, -1, 1, 1], config))
+    np.testing.assert_array_equal(m_rgb[0, :, 0], rgb[0, :, -1])
+    np.testing.assert_array_equal(m_route[0, :, 0], route[0, :, -1])
+    assert m_actions.tolist() == [[0.5, -0.25]]
+    for original, twice in zip(
+        (rgb, lidar, route, actions), mirror_window(m_rgb, m_lidar, m_route, m_actions), strict=True
+    ):
+        np.testing.assert_array_equal(original, twice)
+    with pytest.raises(ValueError, match="mirror 1.5"):
+        TrainConfig(mirror=1.5)
+
+
 def test_training_rollouts_start_from_consecutive_posterior_states_and_match_their_targets():
     from umad_common.training.train_world_model import (
         TrainConfig,

@@ -2,12 +2,19 @@
 function chain called in one process. Both sides encode and decode every message, so the ratio is
 the price of the bus itself (transport, joining, acks), not of serialisation. The in-process chain
 runs in a process of its own at the operators' CPU priority (the launcher lowers theirs), so on a
-machine busy with other work both sides compete for the CPU on the same terms."""
+machine busy with other work both sides compete for the CPU on the same terms.
+
+Between the two, the floor of any dataflow on Zenoh: the same three processes doing the same work
+on plain Zenoh sessions (`bare_zenoh`: a publisher, a subscriber read on the main thread, the
+sink's acks straight to the source), without the runtime's joins, ordering, cache, stats or
+membership. Over-bus against bare Zenoh is what the runtime costs; bare Zenoh against in-process is
+what the transport costs, whatever runs on it."""
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
 
@@ -16,6 +23,7 @@ from pydantic import Field
 
 from umad_common.allocator import keep_freed_memory
 from umad_common.benchmarks.graphs import run_bench_graph
+from umad_common.bus import open_client, open_hub
 from umad_common.launcher import OPERATOR_NICENESS
 from umad_common.messages import Message, decode, encode
 from umad_common.operator import Frame, Input, Operator, Output, Source, SourceFrame
@@ -118,11 +126,126 @@ def over_bus(frames: int, size_bytes: int, hub: str, window: int, shm_pool_mib: 
     return {**result, "cpu_ms_per_frame": 1e3 * cpu_s / frames}
 
 
+BARE_READY_TIMEOUT_S = 30.0
+
+
+def bare_zenoh(frames: int, size_bytes: int, hub: str, window: int) -> dict:
+    """source -> relay -> sink as three processes on plain Zenoh sessions through a hub opened here;
+    latency is send-to-ack at the source; CPU is the three processes' over their frames."""
+    spawn = multiprocessing.get_context("spawn")
+    hub_session = open_hub(hub)
+    ready, go, results = spawn.Queue(), spawn.Event(), spawn.Queue()
+    stages = [
+        spawn.Process(target=_bare_stage, args=(name, frames, size_bytes, hub, window, ready, go, results), daemon=True)
+        for name in ("sink", "relay", "source")
+    ]
+    try:
+        for stage in stages:
+            stage.start()
+        for _ in stages:  # each is ready once its publisher reaches a subscriber
+            ready.get(timeout=BARE_READY_TIMEOUT_S)
+        go.set()
+        measured = {}
+        for _ in stages:
+            name, values = results.get(timeout=BARE_READY_TIMEOUT_S + frames)
+            measured[name] = values
+    finally:
+        for stage in stages:
+            if stage.pid is not None:
+                stage.join(5)
+            if stage.is_alive():
+                stage.kill()
+        hub_session.close()
+    source = measured["source"]
+    lat = np.array(source["latencies_s"]) * 1e3
+    cpu_s = sum(values["cpu_s"] for values in measured.values())
+    return {
+        "fps": frames / source["busy_s"],
+        "p50_ms": float(np.percentile(lat, 50)),
+        "p99_ms": float(np.percentile(lat, 99)),
+        "cpu_ms_per_frame": 1e3 * cpu_s / frames,
+    }
+
+
+def _bare_stage(name, frames, size_bytes, hub, window, ready, go, results) -> None:
+    """One process of the bare chain, set up as a replica (niced, keeping freed memory)."""
+    import msgpack
+    import zenoh
+
+    _as_a_replica()
+    session = open_client(hub)
+    if name == "source":
+        results.put((name, _bare_source(session, frames, size_bytes, window, ready, go)))
+        session.close()
+        return
+    publisher = session.declare_publisher(f"bench/bare/{name}", congestion_control=zenoh.CongestionControl.BLOCK)
+    subscriber = session.declare_subscriber(
+        "bench/bare/source" if name == "relay" else "bench/bare/relay", zenoh.handlers.FifoChannel(64)
+    )
+    _wait_for_subscriber(publisher)
+    ready.put(name)
+    cpu_start = None
+    for _ in range(frames):
+        payload = subscriber.recv().payload.to_bytes()
+        cpu_start = time.process_time() if cpu_start is None else cpu_start
+        msg = decode(payload)
+        if name == "relay":
+            out = Relay().process(Frame(msg.run, msg.seq, msg.stamp_ns, {"blob": msg}))["blob"]
+            publisher.put(encode(Message(msg.run, msg.seq, msg.stamp_ns, "relay", out.meta, out.arrays)))
+        else:
+            BlobSink().process(Frame(msg.run, msg.seq, msg.stamp_ns, {"blob": msg}))
+            publisher.put(msgpack.packb(msg.seq))
+    results.put((name, {"cpu_s": time.process_time() - cpu_start}))
+    session.close()
+
+
+def _bare_source(session, frames: int, size_bytes: int, window: int, ready, go) -> dict:
+    """Publish `frames` blobs once every stage is ready, at most `window` not yet acked by the sink."""
+    import msgpack
+    import zenoh
+
+    slots, sent, latencies = threading.Semaphore(window), {}, []
+    done = threading.Event()
+
+    def on_ack(sample: zenoh.Sample) -> None:
+        latencies.append(time.perf_counter() - sent[msgpack.unpackb(sample.payload.to_bytes())])
+        slots.release()
+        if len(latencies) == frames:
+            done.set()
+
+    subscriber = session.declare_subscriber("bench/bare/sink", on_ack)
+    publisher = session.declare_publisher("bench/bare/source", congestion_control=zenoh.CongestionControl.BLOCK)
+    _wait_for_subscriber(publisher)
+    ready.put("source")
+    go.wait(BARE_READY_TIMEOUT_S)
+    source = BlobSource({"frames": frames, "size_bytes": size_bytes})
+    start, cpu_start = time.perf_counter(), time.process_time()
+    for sf in source.frames():
+        slots.acquire()
+        sent[sf.seq] = time.perf_counter()
+        publisher.put(encode(Message(sf.run, sf.seq, sf.stamp_ns, "source", {}, sf.outputs["blob"].arrays)))
+    if not done.wait(BARE_READY_TIMEOUT_S):
+        raise RuntimeError(f"bare Zenoh chain: {len(latencies)} of {frames} frames acked")
+    busy_s, cpu_s = time.perf_counter() - start, time.process_time() - cpu_start
+    subscriber.undeclare()
+    return {"busy_s": busy_s, "cpu_s": cpu_s, "latencies_s": latencies}
+
+
+def _wait_for_subscriber(publisher) -> None:
+    """Until the hub knows a subscriber for `publisher` (a put before that reaches nobody)."""
+    deadline = time.monotonic() + BARE_READY_TIMEOUT_S
+    while not publisher.matching_status.matching:
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"bare Zenoh chain: nobody subscribed to {publisher.key_expr}")
+        time.sleep(0.01)
+
+
 def bench_bus(
     frames: int = 300, size_bytes: int = 1 << 20, hub: str = "tcp/127.0.0.1:7449", shm_pool_mib: int | None = None
 ) -> dict:
     """`shm_pool_mib`: the graph's `shm_pool_mib` (None: Zenoh's default pool)."""
     local = in_process(frames, size_bytes)
+    bare = bare_zenoh(frames, size_bytes, hub, window=8)
     bus = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib)
     bus1 = over_bus(frames, size_bytes, hub, window=1, shm_pool_mib=shm_pool_mib)
     keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame")
@@ -131,9 +254,12 @@ def bench_bus(
         "frame_bytes": size_bytes,
         "shm_pool_mib": shm_pool_mib,
         "in_process": local,
+        "bare_zenoh_window_8": bare,
         "bus_window_8": {k: bus[k] for k in keep},
         "bus_window_1": {k: bus1[k] for k in keep},
         "fps_ratio_bus_over_in_process": bus["fps"] / local["fps"],
+        "fps_ratio_bare_zenoh_over_in_process": bare["fps"] / local["fps"],
+        "fps_ratio_bus_over_bare_zenoh": bus["fps"] / bare["fps"],
         "p50_ratio_bus_window_1_over_in_process": bus1["p50_ms"] / local["p50_ms"],
         # two 1 MiB hops (source -> relay -> sink); the small ack back to the source is charged to them
         "p50_ms_added_per_hop_window_1": (bus1["p50_ms"] - local["p50_ms"]) / 2,
