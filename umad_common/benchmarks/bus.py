@@ -14,11 +14,14 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import queue
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
 
+import msgpack
 import numpy as np
+import zenoh
 from pydantic import Field
 
 from umad_common.allocator import keep_freed_memory
@@ -134,21 +137,17 @@ def bare_zenoh(frames: int, size_bytes: int, hub: str, window: int) -> dict:
     latency is send-to-ack at the source; CPU is the three processes' over their frames."""
     spawn = multiprocessing.get_context("spawn")
     hub_session = open_hub(hub)
-    ready, go, results = spawn.Queue(), spawn.Event(), spawn.Queue()
+    events, go = spawn.Queue(), spawn.Event()
     stages = [
-        spawn.Process(target=_bare_stage, args=(name, frames, size_bytes, hub, window, ready, go, results), daemon=True)
+        spawn.Process(target=_bare_stage, args=(name, frames, size_bytes, hub, window, events, go), daemon=True)
         for name in ("sink", "relay", "source")
     ]
     try:
         for stage in stages:
             stage.start()
-        for _ in stages:  # each is ready once its publisher reaches a subscriber
-            ready.get(timeout=BARE_READY_TIMEOUT_S)
+        _bare_events(events, "ready", BARE_READY_TIMEOUT_S)  # each publisher reaches its subscriber
         go.set()
-        measured = {}
-        for _ in stages:
-            name, values = results.get(timeout=BARE_READY_TIMEOUT_S + frames)
-            measured[name] = values
+        measured = _bare_events(events, "result", BARE_READY_TIMEOUT_S + frames)
     finally:
         for stage in stages:
             if stage.pid is not None:
@@ -167,23 +166,45 @@ def bare_zenoh(frames: int, size_bytes: int, hub: str, window: int) -> dict:
     }
 
 
-def _bare_stage(name, frames, size_bytes, hub, window, ready, go, results) -> None:
-    """One process of the bare chain, set up as a replica (niced, keeping freed memory)."""
-    import msgpack
-    import zenoh
+def _bare_events(events, kind: str, timeout_s: float) -> dict:
+    """The `kind` event of each of the three stages, {stage: value}; a stage's error is raised here."""
+    got: dict = {}
+    while len(got) < 3:
+        try:
+            name, event, value = events.get(timeout=timeout_s)
+        except queue.Empty:
+            missing = sorted({"source", "relay", "sink"} - set(got))
+            raise RuntimeError(f"bare Zenoh chain: no {kind} from {missing} within {timeout_s:.0f} s") from None
+        if event == "error":
+            raise RuntimeError(f"bare Zenoh chain, {name}: {value}")
+        got[name] = value
+    return got
 
+
+def _bare_stage(name, frames, size_bytes, hub, window, events, go) -> None:
+    """One process of the bare chain, set up as a replica (niced, keeping freed memory)."""
     _as_a_replica()
     session = open_client(hub)
-    if name == "source":
-        results.put((name, _bare_source(session, frames, size_bytes, window, ready, go)))
+    try:
+        if name == "source":
+            result = _bare_source(session, frames, size_bytes, window, events, go)
+        else:
+            result = _bare_consumer(session, name, frames, events)
+        events.put((name, "result", result))
+    except Exception as exc:
+        events.put((name, "error", f"{type(exc).__name__}: {exc}"))
+    finally:
         session.close()
-        return
+
+
+def _bare_consumer(session, name: str, frames: int, events) -> dict:
+    """The relay (decode, checksum, encode, put) or the sink (decode, ack to the source)."""
     publisher = session.declare_publisher(f"bench/bare/{name}", congestion_control=zenoh.CongestionControl.BLOCK)
     subscriber = session.declare_subscriber(
         "bench/bare/source" if name == "relay" else "bench/bare/relay", zenoh.handlers.FifoChannel(64)
     )
     _wait_for_subscriber(publisher)
-    ready.put(name)
+    events.put((name, "ready", None))
     cpu_start = None
     for _ in range(frames):
         payload = subscriber.recv().payload.to_bytes()
@@ -195,15 +216,11 @@ def _bare_stage(name, frames, size_bytes, hub, window, ready, go, results) -> No
         else:
             BlobSink().process(Frame(msg.run, msg.seq, msg.stamp_ns, {"blob": msg}))
             publisher.put(msgpack.packb(msg.seq))
-    results.put((name, {"cpu_s": time.process_time() - cpu_start}))
-    session.close()
+    return {"cpu_s": time.process_time() - cpu_start}
 
 
-def _bare_source(session, frames: int, size_bytes: int, window: int, ready, go) -> dict:
+def _bare_source(session, frames: int, size_bytes: int, window: int, events, go) -> dict:
     """Publish `frames` blobs once every stage is ready, at most `window` not yet acked by the sink."""
-    import msgpack
-    import zenoh
-
     slots, sent, latencies = threading.Semaphore(window), {}, []
     done = threading.Event()
 
@@ -216,7 +233,7 @@ def _bare_source(session, frames: int, size_bytes: int, window: int, ready, go) 
     subscriber = session.declare_subscriber("bench/bare/sink", on_ack)
     publisher = session.declare_publisher("bench/bare/source", congestion_control=zenoh.CongestionControl.BLOCK)
     _wait_for_subscriber(publisher)
-    ready.put("source")
+    events.put(("source", "ready", None))
     go.wait(BARE_READY_TIMEOUT_S)
     source = BlobSource({"frames": frames, "size_bytes": size_bytes})
     start, cpu_start = time.perf_counter(), time.process_time()
