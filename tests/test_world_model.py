@@ -403,7 +403,12 @@ def test_evaluation_reports_psnr_per_step_and_anomaly_road_ratio(tiny_benchmark)
     assert all(0 < figures[key] < 60 for key in ("recon_psnr", "pred1_psnr", "pred2_psnr", "pred3_psnr"))
     assert figures["anomaly_road_ratio"] == pytest.approx(figures["anomaly_error"] / figures["road_error"])
     # any folder of normal drives: a model that names none of them as training drives is scored on all
-    assert evaluate_world_model(tiny_model(), tiny_benchmark / "normal", {}, horizon=1)["normal_drives"] == 3
+    every = evaluate_world_model(tiny_model(), tiny_benchmark / "normal", {}, horizon=1)
+    assert every["normal_drives"] == 3 and len(every["per_drive"]) == 3
+    # each drive's PSNRs, pooled over its frames, give the overall ones (the drives are equally long)
+    for key in ("recon_psnr", "pred1_psnr"):
+        mean_mse = np.mean([10 ** (-drive[key] / 10) for drive in every["per_drive"].values()])
+        assert every[key] == pytest.approx(-10 * np.log10(mean_mse), abs=1e-6)
 
 
 def test_evaluation_predictions_are_the_prior_rolled_from_k_steps_back(tiny_benchmark):

@@ -3,7 +3,8 @@
 DATA is any AnoVox folder: a benchmark (normal/ and anomalous/) or a folder of normal drives. Prints,
 on the normal drives the model never trained on (named in MODEL.json), the PSNR of the
 reconstruction and of the predictions 1..horizon steps ahead, and, on DATA/anomalous, the mean
-|error| inside anomalies against road pixels outside them (the ratio must be well above 1).
+|error| inside anomalies against road pixels outside them (the ratio must be well above 1), then
+the same PSNRs for each normal drive (`per_drive`).
 """
 
 from __future__ import annotations
@@ -42,5 +43,12 @@ def run(args: argparse.Namespace) -> int:
     figures = evaluate_world_model(
         model, args.data, record, args.horizon, normal_limit=args.normal_limit, anomalous_limit=args.anomalous_limit
     )
-    print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in figures.items()}, indent=2))
+    print(json.dumps(rounded(figures), indent=2))
     return 0
+
+
+def rounded(value):
+    """Floats to 4 decimals, inside dicts too (the per-drive figures)."""
+    if isinstance(value, dict):
+        return {k: rounded(v) for k, v in value.items()}
+    return round(value, 4) if isinstance(value, float) else value

@@ -93,32 +93,35 @@ def evaluate_world_model(
     horizon: int = 3,
     normal_limit: int | None = None,
     anomalous_limit: int | None = None,
-) -> dict[str, float | int]:
+) -> dict:
     """Figures of `model` on DATA: its unseen normal drives (up to `normal_limit`) and DATA/anomalous
     (up to `anomalous_limit` drives). Returns PSNRs (reconstruction, prediction k = 1..horizon),
-    the error inside / outside anomalies and their ratio."""
+    the error inside / outside anomalies and their ratio, and the PSNRs of each normal drive
+    (`per_drive`, by scenario name): which drives are hard."""
     config = model.config
     model.eval()
-    figures: dict[str, float | int] = {}
+    figures: dict = {}
     normal = unseen_normal_drives(data, record)[:normal_limit]
     squared = {k: 0.0 for k in range(horizon + 1)}  # k = 0: the reconstruction
     counts = {k: 0 for k in range(horizon + 1)}
+    per_drive: dict[str, dict[str, float]] = {}
     for path in normal:
         drive = load_drive(label_free_scenario(path, config.frame_step), config)
         target = drive.rgb.astype(np.float32) / 255.0
         posterior, recon = filter_drive(model, drive)
-        squared[0] += float(((recon - target) ** 2).sum())
-        counts[0] += target.size
+        drive_squared = {0: float(((recon - target) ** 2).sum())}
+        drive_counts = {0: target.size}
         for k, frames, predicted in predict_drive(model, drive, posterior, horizon):
-            squared[k] += float(((predicted - target[frames]) ** 2).sum())
-            counts[k] += predicted.size
+            drive_squared[k] = float(((predicted - target[frames]) ** 2).sum())
+            drive_counts[k] = predicted.size
+        for k in drive_squared:
+            squared[k] += drive_squared[k]
+            counts[k] += drive_counts[k]
+        per_drive[path.name] = psnr_figures(drive_squared, drive_counts)
     if normal:
         figures["normal_drives"] = len(normal)
         figures["normal_frames"] = counts[0] // (config.image_height * config.image_width * 3)
-        figures["recon_psnr"] = psnr(squared[0] / counts[0])
-        for k in range(1, horizon + 1):
-            if counts[k]:
-                figures[f"pred{k}_psnr"] = psnr(squared[k] / counts[k])
+        figures.update(psnr_figures(squared, counts))
 
     anomalous_root = Path(data) / "anomalous"
     paths = find_scenarios(anomalous_root) if anomalous_root.is_dir() else []
@@ -140,4 +143,15 @@ def evaluate_world_model(
         figures["anomaly_error"] = sums["anomaly"] / max(pixels["anomaly"], 1)
         figures["road_error"] = sums["road"] / max(pixels["road"], 1)
         figures["anomaly_road_ratio"] = figures["anomaly_error"] / max(figures["road_error"], 1e-12)
+    if per_drive:
+        figures["per_drive"] = per_drive
     return figures
+
+
+def psnr_figures(squared: dict[int, float], counts: dict[int, int]) -> dict[str, float]:
+    """`recon_psnr` (k = 0) and `pred{k}_psnr` from summed squared errors and value counts per k."""
+    return {
+        ("recon_psnr" if k == 0 else f"pred{k}_psnr"): psnr(squared[k] / counts[k])
+        for k in sorted(squared)
+        if counts[k]
+    }
