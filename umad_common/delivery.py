@@ -56,6 +56,7 @@ class Stats:
     duplicates: int = 0
     dropped: int = 0
     retransmits: int = 0
+    lost_payloads: int = 0  # ring references whose payload was gone (recovered by retransmission)
     param_changes: int = 0
     busy_s: float = 0.0  # sources: first send to last ack
     acked: int = 0  # sources: frames every sink has acked

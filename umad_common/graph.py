@@ -67,6 +67,11 @@ class GraphSpec(BaseModel):
         description="each replica's Zenoh shared-memory pool for large messages, MiB (default Zenoh's 16); "
         "a message that finds no room goes through the hub's socket",
     )
+    shared_payloads: bool = Field(
+        True,
+        description="large payloads are written once into a shared-memory ring on the publisher's host and "
+        "Zenoh carries a reference (subscribers on other hosts fetch them); false: every payload through Zenoh",
+    )
     tls: TlsSpec | None = None
     base_dir: str | None = Field(
         None, description="folder that relative paths in params resolve against (default: the graph file's)"

@@ -31,6 +31,7 @@ import zenoh
 from umad_common.bus import Keys, answer, cleanup_stale_shm, close_session, open_client
 from umad_common.graph import Graph, GraphError, OperatorSpec, load_graph
 from umad_common.mcap_log import McapRecorder
+from umad_common.payload_ring import PayloadReader, fetch, remove_stale_rings
 from umad_common.runtime import EXIT_CONFIG
 
 log = logging.getLogger("umad.launch")
@@ -116,6 +117,8 @@ class Launcher:
         self.sets = sets or []
         self.keys = Keys(graph.name)
         self.recorder: McapRecorder | None = None
+        self.payloads = PayloadReader()  # the recorder's: it records payloads, not ring references
+        self._fetches: queue.Queue = queue.Queue()  # references to rings of other hosts, for the recorder
         self._control: queue.Queue = queue.Queue()
         sources = set(graph.sources())
         self.replicas: list[Replica] = []
@@ -214,6 +217,8 @@ class Launcher:
         code = rep.proc.poll()
         if code is None:
             return
+        remove_stale_rings()  # a killed replica could not unlink its payload ring
+        self.payloads.forget_gone()
         if code == 0:  # a source whose stream is acked, or an operator stopped on purpose
             rep.finished = True
             return
@@ -261,6 +266,7 @@ class Launcher:
             except subprocess.TimeoutExpired:
                 self.hub_replica.proc.kill()
         cleanup_stale_shm()
+        remove_stale_rings()
 
     def _terminate_all(self) -> None:
         for rep in self.replicas:
@@ -324,10 +330,12 @@ class Launcher:
                     {"base_dir": str(self.graph.base_dir), "sets": json.dumps(self.sets)},
                 )
                 subscribers.append(hub.declare_subscriber(f"{keys.root}/**", lambda s: self._on_record(recorder, s)))
+                threading.Thread(target=self._fetch_for_record, args=(hub, recorder), daemon=True).start()
             for rep in self.replicas:
                 self._spawn(rep)
             code = self._supervise()
             if self.recorder is not None:
+                self._fetches.join()
                 while time.monotonic() - self.recorder.last_write < RECORDER_IDLE_S:
                     time.sleep(0.1)
             self._terminate_all()
@@ -340,6 +348,7 @@ class Launcher:
                 self.recorder.close()
                 log.info("recorded %d messages to %s", self.recorder.count, self.record)
             hub.close()
+            self.payloads.close()
             self._stop_hub()
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
@@ -454,7 +463,24 @@ class Launcher:
         parts = key.split("/")
         if len(parts) > 2 and parts[2] in ("_stats", "_ack", "_live", "_left"):
             return
-        recorder.write(key, sample.payload.to_bytes())
+        raw = sample.payload.to_bytes()
+        payload = self.payloads.take(raw)
+        if payload is None:  # a publisher on another host: fetched off Zenoh's callback thread
+            self._fetches.put((key, raw))
+        else:
+            recorder.write(key, payload)
+
+    def _fetch_for_record(self, hub: zenoh.Session, recorder: McapRecorder) -> None:
+        while True:
+            key, reference = self._fetches.get()
+            payload = fetch(hub, self.keys.root, reference)
+            if payload is None:
+                log.warning(
+                    "a payload on %s could not be fetched for the recording; its publisher no longer has it", key
+                )
+            else:
+                recorder.write(key, payload)
+            self._fetches.task_done()
 
     def _print_summary(self) -> None:
         if not self.stats or self.quiet:

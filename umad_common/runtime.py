@@ -53,6 +53,7 @@ from umad_common.mcap_log import LogError
 from umad_common.messages import Message, MessageError, decode, encode
 from umad_common.operator import Context, Frame, Operator, Output, Source
 from umad_common.pacing import JoinParams
+from umad_common.payload_ring import PayloadReader, PayloadRing, fetch, is_reference, on_this_host
 from umad_common.source_driver import SourceDriver
 
 log = logging.getLogger("umad.runtime")
@@ -68,8 +69,9 @@ EXIT_CONFIG = 3  # an operator that exits with this failed on its configuration:
 
 class Received(NamedTuple):
     """One input message as the subscriber took it: its bytes are copied out of Zenoh's shared
-    memory at once, so a busy operator's queue never holds the publisher's shared-memory pool (a
-    full pool sends every later message the slow way, through the hub's socket)."""
+    memory, or out of the publisher's payload ring, at once, so a busy operator's queue never holds
+    shared memory a publisher is about to reuse. A payload the ring could not give (its publisher
+    runs on another host) stays a reference until the transform loop fetches it."""
 
     port: str
     key: str
@@ -78,10 +80,12 @@ class Received(NamedTuple):
     arrived: float  # wall clock
 
     @classmethod
-    def take(cls, port: str, sample: zenoh.Sample) -> Received:
+    def take(cls, port: str, sample: zenoh.Sample, reader: PayloadReader) -> Received:
         stamp = sample.timestamp
         sent = None if stamp is None else stamp.get_time_as_ntp64().as_secs_f64()
-        return cls(port, str(sample.key_expr), sample.payload.to_bytes(), sent, time.time())
+        raw = sample.payload.to_bytes()
+        payload = reader.take(raw)
+        return cls(port, str(sample.key_expr), raw if payload is None else payload, sent, time.time())
 
 
 class OperatorRuntime:
@@ -97,7 +101,10 @@ class OperatorRuntime:
         max_frames: int | None = None,
         replay_log: str | None = None,
         allow_truncated: bool = False,
+        shared_payloads: bool = True,
     ):
+        """`shared_payloads=False`: publish every payload through Zenoh even where the graph asks
+        for rings (a replica whose hub is on another host)."""
         self.graph = graph
         self.replay_log = replay_log
         self.allow_truncated = allow_truncated
@@ -125,6 +132,8 @@ class OperatorRuntime:
         self.members = Membership()
         self.resend_requests: list[dict] = []  # sources: frames a restarted ordered operator needs again
         self._rewinds: dict[str, float] = {}  # ordered operators: run -> when frames were last re-requested
+        self.ring = PayloadRing(self.keys.root) if graph.spec.shared_payloads and shared_payloads else None
+        self.reader = PayloadReader()
         self.publishers = {
             out: session.declare_publisher(self.keys.data(op_id, out), congestion_control=zenoh.CongestionControl.BLOCK)
             for out in self.cls.outputs
@@ -155,7 +164,10 @@ class OperatorRuntime:
     def _subscribe_inputs(self) -> None:
         for port in self.spec.inputs:
             for source in self.spec.sources_of(port):
-                self.subscribe(self.keys.pattern(source), lambda s, port=port: self.data_q.put(Received.take(port, s)))
+                self.subscribe(
+                    self.keys.pattern(source),
+                    lambda s, port=port: self.data_q.put(Received.take(port, s, self.reader)),
+                )
 
     def _subscribe_service(self) -> None:
         control = self.keys.control(self.op_id)
@@ -166,6 +178,8 @@ class OperatorRuntime:
             )
         )
         self.subscribe(self.keys.left, lambda s: self._service_event("left", s))
+        if self.ring is not None:  # subscribers that cannot map the ring fetch payloads here
+            self._subscribers.append(self.session.declare_queryable(self.ring.fetch_key, self.ring.serve))
         self._subscribers.append(
             self.session.liveliness().declare_subscriber(
                 self.keys.live_all, lambda s: self._service_event("live", s), history=True
@@ -330,7 +344,22 @@ class OperatorRuntime:
             if self._cpu_from is not None:
                 self.stats.process_cpu_s = time.process_time() - self._cpu_from
             snap = self.stats.snapshot(self.data_q.qsize())
+            self.reader.forget_gone()
             self.stats_pub.put(json.dumps({"op": self.op_id, "replica": self.replica_id, **snap}).encode())
+
+    def _payload_of(self, received: Received) -> bytes | None:
+        """The message's bytes; a reference to a ring this host cannot map is fetched from its
+        publisher. A payload nobody has any more is counted in `lost_payloads` and left to the
+        source's retransmission, which brings the frame again."""
+        if not is_reference(received.payload):
+            return received.payload
+        payload = fetch(self.session, self.keys.root, received.payload)
+        if payload is None:
+            self.stats.lost_payloads += 1
+            self.log.warning(
+                "payload on %s could not be fetched from its publisher; waiting for a resend", received.key
+            )
+        return payload
 
     def _warn_bad_message(self, key: str, exc: MessageError) -> None:
         """Log the first few malformed messages in full, then one summary line per interval: a flood
@@ -374,6 +403,8 @@ class OperatorRuntime:
         """Put one frame's payloads; `count=False` for a retransmission, which is no new frame. Each
         carries the put's time (a Zenoh timestamp, not part of the payload) for `transport_ms`."""
         for port, payload in payloads:
+            if self.ring is not None:
+                payload = self.ring.pack(payload)
             self.publishers[port].put(payload, timestamp=self.session.new_timestamp())
         if count:
             self.stats.frames_out += 1
@@ -402,6 +433,9 @@ class OperatorRuntime:
             self.session.put(self.keys.left, msgpack.packb({"op": self.op_id, "replica": self.replica_id}))
             token.undeclare()
             self.publish_stats(force=True)
+            self.reader.close()
+            if self.ring is not None:
+                self.ring.close()
         if not isinstance(self.operator, Source):
             self.log.info(
                 "stopped after %d frames (%d errors, %d bad messages)",
@@ -492,8 +526,11 @@ class OperatorRuntime:
                 received = None
             if received is not None:
                 self._count_arrival(received)
+                payload = self._payload_of(received)
+                if payload is None:
+                    continue
                 try:
-                    msg = decode(received.payload)
+                    msg = decode(payload)
                 except MessageError as exc:
                     self.stats.bad_messages += 1
                     self._warn_bad_message(received.key, exc)
@@ -560,14 +597,15 @@ def run_operator(
     keep_freed_memory()
     shutdown = ShutdownSignal()
     tls = graph.tls_config()
-    session = open_client(connect or graph.spec.hub, tls, cancel=shutdown.event, shm_pool_mib=graph.spec.shm_pool_mib)
+    hub = connect or graph.spec.hub
+    session = open_client(hub, tls, cancel=shutdown.event, shm_pool_mib=graph.spec.shm_pool_mib)
     if session is None:
-        log.info("stopped while waiting for the hub at %s", connect or graph.spec.hub)
+        log.info("stopped while waiting for the hub at %s", hub)
         _exit(0)
     code = 0
     try:
         runtime = OperatorRuntime(
-            graph, op_id, replica, session, shutdown.event, max_frames, replay_log, allow_truncated
+            graph, op_id, replica, session, shutdown.event, max_frames, replay_log, allow_truncated, on_this_host(hub)
         )
     except Exception as exc:  # bad parameters, missing weights: say so once, do not restart
         log.error("operator %s could not start: %s: %s", op_id, type(exc).__name__, exc)

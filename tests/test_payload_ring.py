@@ -1,0 +1,168 @@
+"""The same-host data plane: payloads written once into a publisher's shared-memory ring, references
+through Zenoh, fetched from the publisher where the ring cannot be mapped."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from tests.conftest import REPO, run_umad, start_umad, umad_env
+from tests.test_runtime_e2e import assert_exactly_once, sink_lines, toy_graph
+from umad_common.bus import open_client, open_hub
+from umad_common.mcap_log import read_log
+from umad_common.messages import Message, MessageError, decode, encode
+from umad_common.payload_ring import (
+    INLINE_BELOW,
+    PayloadReader,
+    PayloadRing,
+    fetch,
+    is_reference,
+    on_this_host,
+    remove_stale_rings,
+)
+
+
+def payload(size: int, fill: int = 0) -> bytes:
+    return encode(Message("run", fill, 0, "test", {}, {"x": np.full(size, fill, np.uint8)}))
+
+
+def test_a_large_payload_travels_as_a_reference_and_comes_back_byte_for_byte(tmp_path):
+    ring, reader = PayloadRing("umad/t", tmp_path), PayloadReader(tmp_path)
+    small, large = payload(100), payload(1 << 20, 7)
+    assert ring.pack(small) == small and reader.take(small) == small  # small ones travel inline
+    reference = ring.pack(large)
+    assert is_reference(reference) and len(reference) < 100
+    assert reader.take(reference) == large
+    with pytest.raises(MessageError, match="not valid msgpack"):  # never mistaken for a message
+        decode(reference)
+    ring.close()
+    assert not list(tmp_path.iterdir())
+
+
+def test_an_overwritten_payload_is_refused_not_returned_torn(tmp_path):
+    ring, reader = PayloadRing("umad/t", tmp_path), PayloadReader(tmp_path)
+    first = ring.pack(payload(INLINE_BELOW, 1))
+    assert reader.take(first) == payload(INLINE_BELOW, 1)
+    for fill in range(2, 200):  # round the ring several times
+        latest = ring.pack(payload(INLINE_BELOW, fill))
+    assert reader.take(first) is None
+    assert reader.take(latest) == payload(INLINE_BELOW, 199)
+    ring.close()
+
+
+def test_the_ring_grows_for_a_larger_payload_and_the_old_one_goes(tmp_path):
+    ring, reader = PayloadRing("umad/t", tmp_path), PayloadReader(tmp_path)
+    before = ring.pack(payload(INLINE_BELOW, 1))
+    old_name, old_capacity = ring.name, ring.capacity
+    big = payload(ring.capacity // 8, 2)  # needs 32 slots: more than the ring holds
+    after = ring.pack(big)
+    assert ring.name != old_name and ring.capacity > old_capacity
+    assert [p.name for p in tmp_path.iterdir()] == [ring.name]
+    assert reader.take(after) == big
+    assert reader.take(before) is None  # unlinked before this reader mapped it: fetch from the publisher
+    ring.close()
+
+
+def test_a_ring_that_cannot_be_created_sends_payloads_inline(tmp_path):
+    ring = PayloadRing("umad/t", tmp_path / "missing")
+    large = payload(1 << 20)
+    assert ring.pack(large) == large
+    assert "cannot create" in ring.disabled_because
+
+
+def test_a_reader_that_cannot_map_the_ring_fetches_from_the_publisher(tmp_path, hub_endpoint):
+    hub = open_hub(hub_endpoint)
+    publisher, subscriber = open_client(hub_endpoint), open_client(hub_endpoint)
+    ring = PayloadRing("umad/t", tmp_path / "host_a")
+    (tmp_path / "host_a").mkdir()
+    try:
+        queryable = publisher.declare_queryable(ring.fetch_key, ring.serve)
+        large = payload(1 << 20, 3)
+        reference = ring.pack(large)
+        elsewhere = PayloadReader(tmp_path / "host_b")  # another host: the ring's file is not there
+        assert elsewhere.take(reference) is None
+        assert fetch(subscriber, "umad/t", reference) == large
+        for fill in range(100):  # the publisher keeps only its last payloads
+            ring.pack(payload(INLINE_BELOW, fill))
+        assert fetch(subscriber, "umad/t", reference) is None
+        queryable.undeclare()
+    finally:
+        ring.close()
+        for session in (publisher, subscriber, hub):
+            session.close()
+
+
+def test_rings_of_dead_processes_are_removed_and_live_ones_kept(tmp_path):
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    stale = tmp_path / f"umad-{dead.stdout.strip()}-00ff-1.ring"
+    live = tmp_path / f"umad-{os.getpid()}-00ff-1.ring"
+    stale.write_bytes(b"x")
+    live.write_bytes(b"x")
+    assert remove_stale_rings(tmp_path) == [stale.name]
+    assert live.exists()
+
+
+def test_a_replica_whose_hub_is_on_another_host_publishes_through_zenoh():
+    assert on_this_host("tcp/127.0.0.1:7447") and on_this_host("tls/localhost:7447")
+    assert not on_this_host("tcp/192.0.2.1:7447")  # TEST-NET-1: never an address of this machine
+
+
+def large_toy_graph(tmp_path: Path, hub: str, **kw) -> Path:
+    """The toy graph with 400 KB frames: every frame message goes through the rings."""
+    path = toy_graph(tmp_path, hub, **kw)
+    data = yaml.safe_load(path.read_text())
+    data["operators"][0]["params"]["size"] = 100_000
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def test_a_recording_holds_the_payloads_and_replays_byte_for_byte(tmp_path, hub_endpoint):
+    graph = large_toy_graph(tmp_path, hub_endpoint, frames=12)
+    first, second = tmp_path / "first.mcap", tmp_path / "second.mcap"
+    result = run_umad("launch", str(graph), "--record", str(first), timeout=120)
+    assert result.returncode == 0, result.stdout
+    assert_exactly_once(tmp_path, 12)
+    records = [r for r in read_log(first) if r.topic.startswith("umad/toy/source/")]
+    assert len(records) >= 26 and not any(is_reference(r.data) for r in records)
+    assert {decode(r.data).arrays["x"].nbytes for r in records if not decode(r.data).meta.get("eos")} == {400_000}
+    result = run_umad("replay", str(first), "--graph", str(graph), "--record", str(second), timeout=120)
+    assert result.returncode == 0, result.stdout
+
+    def sink_payloads(path):
+        return sorted(r.data for r in read_log(path) if r.topic == "umad/toy/sink/total")
+
+    assert sink_payloads(first) == sink_payloads(second)
+    assert not remove_stale_rings()  # every replica unlinked its ring on the way out
+
+
+def test_a_worker_on_another_host_fetches_and_serves_payloads(tmp_path, hub_endpoint):
+    """A second replica whose rings live where the others cannot map them (another host, as far as
+    shared memory goes) joins mid-stream: it fetches its inputs from the source and the sink fetches
+    its outputs from it. Every frame still arrives exactly once."""
+    graph = large_toy_graph(tmp_path, hub_endpoint, frames=60, delay=0.03, replicas=1)
+    proc = start_umad("launch", str(graph))
+    deadline = time.monotonic() + 60
+    while not ((tmp_path / "sink.jsonl").exists() and sink_lines(tmp_path)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    other_host = tmp_path / "other_host_shm"
+    other_host.mkdir()
+    cmd = [sys.executable, "-m", "umad_common.cli", "op", "run", "double", "--graph", str(graph), "--replica", "1"]
+    env = {**umad_env(), "UMAD_RING_DIR": str(other_host)}
+    worker = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=REPO)
+    out, _ = proc.communicate(timeout=180)
+    worker.send_signal(signal.SIGTERM)
+    worker_out, _ = worker.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    done = int(worker_out.split("stopped after ")[1].split()[0])
+    assert done > 0, worker_out
+    assert "could not be fetched" not in out + worker_out
+    assert_exactly_once(tmp_path, 60)
+    assert not list(other_host.iterdir())  # the worker unlinked its ring on the way out
