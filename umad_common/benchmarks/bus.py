@@ -265,7 +265,7 @@ def _wait_for_subscriber(publisher) -> None:
 
 
 def bench_bus(
-    frames: int = 300, size_bytes: int = 1 << 20, hub: str = "tcp/127.0.0.1:7449", shm_pool_mib: int | None = None
+    frames: int = 2000, size_bytes: int = 1 << 20, hub: str = "tcp/127.0.0.1:7449", shm_pool_mib: int | None = None
 ) -> dict:
     """`shm_pool_mib`: the graph's `shm_pool_mib` (None: Zenoh's default pool)."""
     local = in_process(frames, size_bytes)

@@ -56,7 +56,7 @@ def _run_one(name: str, args) -> dict:
     if name == "bus":
         from umad_common.benchmarks.bus import bench_bus
 
-        return bench_bus(frames=args.frames or 300, hub=args.hub, shm_pool_mib=args.shm_pool_mib)
+        return bench_bus(frames=args.frames or 2000, hub=args.hub, shm_pool_mib=args.shm_pool_mib)
     if name == "metrics":
         from umad_common.benchmarks.metrics import bench_metrics
 
