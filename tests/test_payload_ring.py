@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from tests.conftest import REPO, run_umad, start_umad, umad_env
+from tests.test_distributed import frames_done_by
 from tests.test_runtime_e2e import assert_exactly_once, sink_lines, toy_graph
 from umad_common.bus import open_client, open_hub
 from umad_common.mcap_log import read_log
@@ -161,8 +162,7 @@ def test_a_worker_on_another_host_fetches_and_serves_payloads(tmp_path, hub_endp
     worker.send_signal(signal.SIGTERM)
     worker_out, _ = worker.communicate(timeout=30)
     assert proc.returncode == 0, out
-    done = int(worker_out.split("stopped after ")[1].split()[0])
-    assert done > 0, worker_out
+    assert frames_done_by(worker_out) > 0, worker_out
     assert "could not be fetched" not in out + worker_out
     assert_exactly_once(tmp_path, 60)
     assert not list(other_host.iterdir())  # the worker unlinked its ring on the way out

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import zenoh
 
+from umad_common.payload_ring import remove_stale_rings
+
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
 CONTROL_PRIORITY = zenoh.Priority.INTERACTIVE_HIGH  # commands and their answers overtake queued frames
 SHM_DIR = Path("/dev/shm")
@@ -267,17 +269,19 @@ def _mapped_shm_files() -> set[str]:
 
 
 def cleanup_stale_shm() -> list[str]:
-    """Unlink Zenoh shared-memory segments that no living process maps any more.
+    """Unlink Zenoh shared-memory segments that no living process maps any more, and the payload
+    rings of replicas that are gone (`remove_stale_rings`).
 
     Zenoh's own exit cleanup does not run in every case (a SIGKILLed replica, the receiver side's
     metadata segment), so the launcher sweeps after its children have exited. A segment still mapped
     by any process is never touched.
     """
+    rings = remove_stale_rings()
     if not SHM_DIR.is_dir():
-        return []
+        return rings
     candidates = [p for p in SHM_DIR.glob("*.zenoh")]
     if not candidates:
-        return []
+        return rings
     mapped = _mapped_shm_files()
     removed = []
     for path in candidates:
@@ -289,4 +293,4 @@ def cleanup_stale_shm() -> list[str]:
                 pass
     if removed:
         log.debug("removed %d stale shared-memory segments", len(removed))
-    return removed
+    return rings + removed

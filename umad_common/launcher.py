@@ -266,7 +266,6 @@ class Launcher:
             except subprocess.TimeoutExpired:
                 self.hub_replica.proc.kill()
         cleanup_stale_shm()
-        remove_stale_rings()
 
     def _terminate_all(self) -> None:
         for rep in self.replicas:

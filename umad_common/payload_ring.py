@@ -167,7 +167,8 @@ class PayloadRing:
 
     def close(self) -> None:
         """Unlink the ring file (mappings others hold stay readable until they drop them)."""
-        if self._map is not None and self._view is not None:
+        if self._map is not None:
+            assert self._view is not None
             self._view.release()
             self._map.close()
             (self.directory / self.name).unlink(missing_ok=True)
@@ -230,14 +231,11 @@ class PayloadReader:
     def forget_gone(self) -> None:
         """Drop the mappings of rings whose file is gone (a publisher that moved on or exited)."""
         with self._lock:
-            self._forget_gone()
-
-    def _forget_gone(self) -> None:
-        for name, ring in list(self._maps.items()):
-            if not (self.directory / name).exists():
-                if ring is not None:
-                    ring.close()
-                del self._maps[name]
+            for name, ring in list(self._maps.items()):
+                if not (self.directory / name).exists():
+                    if ring is not None:
+                        ring.close()
+                    del self._maps[name]
 
     def close(self) -> None:
         with self._lock:
