@@ -144,6 +144,43 @@ def test_a_recording_holds_the_payloads_and_replays_byte_for_byte(tmp_path, hub_
     assert not remove_stale_rings()  # every replica unlinked its ring on the way out
 
 
+def test_a_ring_left_to_the_launcher_still_gives_its_payloads_after_its_publisher_closed(tmp_path):
+    """On a busy machine the recorder's callbacks run late: the source has had its frames acked and
+    exited before the recorder copies their payloads, perhaps before it first mapped the ring. A
+    replica the launcher started leaves its ring to the launcher's sweep, so the copy still works."""
+    ring, reader = PayloadRing("umad/test", tmp_path), PayloadReader(tmp_path)
+    sent = [payload(INLINE_BELOW * 2, fill) for fill in range(3)]
+    references = [ring.pack(p) for p in sent]
+    ring.close(unlink=False)
+    assert [reader.take(r) for r in references] == sent  # mapped for the first time after the close
+    reader.close()
+    ring = PayloadRing("umad/test", tmp_path)
+    reference = ring.pack(sent[0])
+    ring.close()  # a replica on its own (`umad op run`) unlinks its ring
+    assert not (tmp_path / ring.name).exists() and PayloadReader(tmp_path).take(reference) is None
+
+
+def test_the_launcher_sweeps_a_replicas_ring_only_after_a_grace(tmp_path, hub_endpoint, monkeypatch):
+    from umad_common import launcher
+    from umad_common.graph import load_graph
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    pid = int(dead.stdout)
+    ring_file = launcher.RING_DIR / f"umad-{pid}-00ff-1.ring"
+    ring_file.write_bytes(b"x")
+    graph_file = toy_graph(tmp_path, hub_endpoint)
+    sweeper = launcher.Launcher(load_graph(graph_file), graph_file, quiet=True)
+    try:
+        sweeper._exited[pid] = time.monotonic()
+        sweeper._sweep_rings()
+        assert ring_file.exists()  # the recorder may still copy from it
+        sweeper._exited[pid] = time.monotonic() - launcher.RING_GRACE_S - 1
+        sweeper._sweep_rings()
+        assert not ring_file.exists() and not sweeper._exited
+    finally:
+        ring_file.unlink(missing_ok=True)
+
+
 def test_a_worker_on_another_host_fetches_and_serves_payloads(tmp_path, hub_endpoint):
     """A second replica whose rings live where the others cannot map them (another host, as far as
     shared memory goes) joins mid-stream: it fetches its inputs from the source and the sink fetches

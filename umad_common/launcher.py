@@ -31,12 +31,13 @@ import zenoh
 from umad_common.bus import Keys, answer, cleanup_stale_shm, close_session, open_client
 from umad_common.graph import Graph, GraphError, OperatorSpec, load_graph
 from umad_common.mcap_log import McapRecorder
-from umad_common.payload_ring import PayloadReader, fetch, remove_stale_rings
+from umad_common.payload_ring import RING_DIR, SWEPT_BY_LAUNCHER, PayloadReader, fetch, remove_stale_rings
 from umad_common.runtime import EXIT_CONFIG
 
 log = logging.getLogger("umad.launch")
 STOP_GRACE_S = 10.0
 RECORDER_IDLE_S = 1.0
+RING_GRACE_S = 30.0  # a replica's payload ring outlives it this long, for the recorder
 HUB_CONNECT_TIMEOUT_S = 60.0
 PROGRESS_INTERVAL_S = 15.0
 HUB_MIN_LIFETIME_S = 5.0  # a hub that dies sooner after its start counts as failing to start
@@ -118,6 +119,7 @@ class Launcher:
         self.keys = Keys(graph.name)
         self.recorder: McapRecorder | None = None
         self.payloads = PayloadReader()  # the recorder's: it records payloads, not ring references
+        self._exited: dict[int, float] = {}  # pid -> when a replica exited, until its ring is swept
         self._fetches: queue.Queue = queue.Queue()  # references to rings of other hosts, for the recorder
         self._control: queue.Queue = queue.Queue()
         sources = set(graph.sources())
@@ -177,7 +179,7 @@ class Launcher:
             sys.stdout.flush()
 
     def _spawn(self, rep: Replica, niceness: int = OPERATOR_NICENESS) -> None:
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", SWEPT_BY_LAUNCHER: "1"}
         rep.started_at = time.monotonic()
         try:
             rep.proc = subprocess.Popen(
@@ -217,8 +219,7 @@ class Launcher:
         code = rep.proc.poll()
         if code is None:
             return
-        remove_stale_rings()  # a killed replica could not unlink its payload ring
-        self.payloads.forget_gone()
+        self._exited[rep.proc.pid] = time.monotonic()
         if code == 0:  # a source whose stream is acked, or an operator stopped on purpose
             rep.finished = True
             return
@@ -367,6 +368,7 @@ class Launcher:
                 return 1
             for rep in self.replicas:
                 self._watch(rep)
+            self._sweep_rings()
             if any(r.failed for r in self.replicas):
                 failed = [r.name for r in self.replicas if r.failed]
                 if self.quiet:
@@ -379,6 +381,17 @@ class Launcher:
                 return 0
             time.sleep(0.1)
         return 130
+
+    def _sweep_rings(self) -> None:
+        """Remove the payload rings of replicas that exited more than RING_GRACE_S ago. Until then
+        the recorder, whose callbacks may lag behind on a busy machine, can still copy the payloads
+        a replica published just before it exited (the replica itself leaves its ring to this)."""
+        now = time.monotonic()
+        recent = {pid for pid, when in self._exited.items() if now - when < RING_GRACE_S}
+        if len(recent) < len(self._exited):
+            remove_stale_rings(RING_DIR, spare_pids=recent)
+            self.payloads.forget_gone()
+            self._exited = {pid: self._exited[pid] for pid in recent}
 
     def _running(self) -> list[str]:
         return sorted({r.op_id for r in list(self.replicas) if r.proc is not None and r.proc.poll() is None})

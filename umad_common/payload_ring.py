@@ -32,11 +32,15 @@ import socket
 import struct
 import threading
 from collections import OrderedDict
+from collections.abc import Collection
 from pathlib import Path
 
 import zenoh
 
 RING_DIR = Path(os.environ.get("UMAD_RING_DIR", "/dev/shm"))  # e.g. a container whose /dev/shm is small
+SWEPT_BY_LAUNCHER = "UMAD_RINGS_SWEPT_BY_LAUNCHER"  # set in a replica's environment by the launcher, which
+#   then removes the replica's ring some time after it exited (`remove_stale_rings`), not the replica
+#   itself: the launcher's recorder may still have references to it in its queue
 REFERENCE_TAG = b"\xc1umad-ref"  # 0xc1 is never valid msgpack: a reference is never taken for a message
 INLINE_BELOW = 64 << 10  # smaller payloads travel inline: a copy through Zenoh is as cheap as a reference
 SLACK_PAYLOADS = 32  # the ring holds at least this many of its largest payload
@@ -165,13 +169,15 @@ class PayloadRing:
         finally:
             query.drop()
 
-    def close(self) -> None:
-        """Unlink the ring file (mappings others hold stay readable until they drop them)."""
+    def close(self, unlink: bool = True) -> None:
+        """Unmap the ring and unlink its file (mappings others hold stay readable until they drop
+        them); `unlink=False` leaves the file to the launcher's sweep."""
         if self._map is not None:
             assert self._view is not None
             self._view.release()
             self._map.close()
-            (self.directory / self.name).unlink(missing_ok=True)
+            if unlink:
+                (self.directory / self.name).unlink(missing_ok=True)
             self._map = self._view = None
 
 
@@ -251,18 +257,22 @@ def fetch(session: zenoh.Session, root: str, reference: bytes) -> bytes | None:
         key = fetch_key(root, reference)
     except ValueError:
         return None
-    for reply in session.get(key, payload=reference, timeout=FETCH_TIMEOUT_S):
-        if reply.ok is not None:
-            return reply.ok.payload.to_bytes()
+    try:
+        for reply in session.get(key, payload=reference, timeout=FETCH_TIMEOUT_S):
+            if reply.ok is not None:
+                return reply.ok.payload.to_bytes()
+    except zenoh.ZError:  # the session closed meanwhile (the launcher stopping)
+        pass
     return None
 
 
-def remove_stale_rings(directory: Path = RING_DIR) -> list[str]:
-    """Unlink ring files whose publisher process is gone (a replica killed before it could)."""
+def remove_stale_rings(directory: Path = RING_DIR, spare_pids: Collection[int] = ()) -> list[str]:
+    """Unlink ring files whose publisher process is gone (a replica killed before it could, or one
+    the launcher sweeps after), except those of `spare_pids`."""
     removed = []
     for path in directory.glob("umad-*.ring") if directory.is_dir() else []:
         match = _RING_NAME.match(path.name)
-        if match and not Path(f"/proc/{match[1]}").exists():
+        if match and int(match[1]) not in spare_pids and not Path(f"/proc/{match[1]}").exists():
             path.unlink(missing_ok=True)
             removed.append(path.name)
     return removed

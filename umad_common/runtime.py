@@ -53,7 +53,14 @@ from umad_common.mcap_log import LogError
 from umad_common.messages import Message, MessageError, decode, encode
 from umad_common.operator import Context, Frame, Operator, Output, Source
 from umad_common.pacing import JoinParams
-from umad_common.payload_ring import PayloadReader, PayloadRing, fetch, is_reference, on_this_host
+from umad_common.payload_ring import (
+    SWEPT_BY_LAUNCHER,
+    PayloadReader,
+    PayloadRing,
+    fetch,
+    is_reference,
+    on_this_host,
+)
 from umad_common.source_driver import SourceDriver
 
 log = logging.getLogger("umad.runtime")
@@ -435,7 +442,7 @@ class OperatorRuntime:
             self.publish_stats(force=True)
             self.reader.close()
             if self.ring is not None:
-                self.ring.close()
+                self.ring.close(unlink=SWEPT_BY_LAUNCHER not in os.environ)
         if not isinstance(self.operator, Source):
             self.log.info(
                 "stopped after %d frames (%d errors, %d bad messages)",
