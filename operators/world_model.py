@@ -5,7 +5,8 @@ Frames of a run arrive in order (ordered operator). Every `stride` received fram
 the previous step's action and this frame's camera, lidar, speed and route, and decoded into x̂_t.
 The rollouts started at the previous n steps are each advanced by one prior step with the action
 actually taken, so x̂_{t|t-i} (row i-1 of `preds`) is the frame predicted from the state of i model
-steps earlier, never having seen the frames since; a new rollout starts from s_t. At a run's start
+steps earlier, never having seen the frames since; a new rollout starts from s_t and keeps the speed
+of its frame (a model with `ground_flow` moves the road by it at every step). At a run's start
 there is no earlier state: `pred_valid[i-1]` is 0 until i steps have passed.
 
 Frames between model steps (stride > 1) get their own target and a reconstruction from the
@@ -28,6 +29,8 @@ from umad_common.messages import Message
 from umad_common.operator import Frame, Input, Operator, Output
 
 if TYPE_CHECKING:
+    import torch
+
     from umad_common.models.world_model import Observation, State
 
 
@@ -84,7 +87,8 @@ class WorldModelPredictor(Operator):
     def reset(self) -> None:
         """Forget the previous run: initial state, no rollouts, no pending action."""
         self.state: State = self.model.initial_state(1)
-        self.rollouts: list[State] = []  # prior rollouts advanced to the last step; [i-1] started i steps before it
+        self.rollouts: list[tuple[State, torch.Tensor]] = []  # prior rollouts advanced to the last step and
+        #   the speed of the frame each started from; [i-1] started i steps before it
         self.pending_action = self.torch.zeros(1, 2)
         self.steps = 0
 
@@ -140,18 +144,18 @@ class WorldModelPredictor(Operator):
         scored = not frame.inputs["camera"].meta.get("skip")
         if model_step:
             advanced = []
-            for origin in self.rollouts:
-                h_pred = self.model.transition(origin, self.pending_action, move=True)
-                advanced.append(State(h_pred, self.model.prior(h_pred)[0]))
+            for origin, speed in self.rollouts:
+                h_pred = self.model.transition(origin, self.pending_action, move=True, speed=speed)
+                advanced.append((State(h_pred, self.model.prior(h_pred)[0]), speed))
             if scored:
-                batch = [posterior, *advanced]
+                batch = [posterior, *(state for state, _ in advanced)]
                 states = State(torch.cat([s.h for s in batch]), torch.cat([s.z for s in batch]))
                 images = self.model.decode(states).permute(0, 2, 3, 1).numpy()
                 recon = images[0]
                 preds[: len(advanced)] = images[1:]
                 valid[: len(advanced)] = 1
             self.state = posterior
-            self.rollouts = [posterior, *advanced][:n]
+            self.rollouts = [(posterior, obs.speed.reshape(1)), *advanced][:n]
             self.pending_action = torch.from_numpy(action)[None]
             self.steps += 1
         elif scored:

@@ -63,7 +63,7 @@ def random_observation(config: WorldModelConfig, b: int, t: int, seed: int = 1) 
 
 
 def test_observe_and_imagine_shapes():
-    model = tiny_model()
+    model = tiny_model(ground_flow=True)
     c = model.config
     obs, actions = random_observation(c, b=2, t=5)
     result = model.observe(obs, actions)
@@ -72,16 +72,19 @@ def test_observe_and_imagine_shapes():
     assert result.prior_std.min() >= c.min_std and result.post_std.min() >= c.min_std
     assert 0.0 <= result.rgb.min() and result.rgb.max() <= 1.0
     last = State(result.states.h[:, -1], result.states.z[:, -1])
-    imagined = model.imagine(last, actions[:, :3], 3)
+    imagined = model.imagine(last, actions[:, :3], 3, speed=obs.speed[:, -1, 0])
     assert imagined.rgb.shape == (2, 3, 3, 32, 64)
     assert imagined.states.h.shape == (2, 3, c.deter_dim)
     with pytest.raises(ValueError, match="at least 4"):
-        model.imagine(last, actions[:, :3], 4)
+        model.imagine(last, actions[:, :3], 4, speed=obs.speed[:, -1, 0])
+    with pytest.raises(ValueError, match="pass `speed`"):
+        model.imagine(last, actions[:, :3], 3)
 
 
 def test_motion_warp_starts_as_the_identity_and_moves_cells_by_its_displacement():
     torch.manual_seed(0)
-    warp = MotionWarp(in_channels=3, hidden=4, max_shift=4.0, grid=(6, 8))
+    config = WorldModelConfig(image_height=24, image_width=32, motion_channels=4, max_shift=4.0, ground_flow=False)
+    warp = MotionWarp(in_channels=3, config=config)  # a 6 x 8 grid
     features, maps = torch.randn(2, 3, 6, 8), torch.randn(2, 5, 6, 8)
     assert torch.allclose(warp(features, maps), maps, atol=1e-5)  # zero-initialised head: no motion
     with torch.no_grad():  # a displacement of exactly +1 cell in x (columns) and 0 in y everywhere
@@ -89,6 +92,36 @@ def test_motion_warp_starts_as_the_identity_and_moves_cells_by_its_displacement(
     moved = warp(features, maps)
     assert torch.allclose(moved[..., :-1], maps[..., 1:], atol=1e-5)  # each cell takes its right neighbour's content
     assert torch.allclose(moved[..., -1], maps[..., -1], atol=1e-5)  # past the border: the edge repeats
+
+
+def test_the_road_flow_brings_each_road_cell_from_where_the_camera_saw_it_a_step_before():
+    config = WorldModelConfig(ground_flow=True, camera_fov=90.0, camera_height=1.8)  # a 32 x 48 grid of 4 x 4 px cells
+    warp = MotionWarp(in_channels=3, config=config)
+    travel = 0.9  # metres: 9 m/s for 0.1 s
+    shift = warp.ground_source(torch.tensor([travel]))[0]  # (2, rows, cols) in cells
+    focal = config.image_width / 2  # px: a 90 degree field of view
+    for row, col in ((31, 0), (24, 30), (17, 40)):  # cells below the horizon (row 16 is the first)
+        u = (col + 0.5) * 4 - config.image_width / 2  # the cell's centre, px from the image centre
+        v = (row + 0.5) * 4 - config.image_height / 2
+        depth = focal * config.camera_height / v  # the road point the cell sees now...
+        lateral = u * depth / focal
+        before = depth + travel  # ...was this far away a step before
+        seen = (focal * lateral / before, focal * config.camera_height / before)
+        assert shift[0, row, col].item() == pytest.approx((seen[0] - u) / 4, abs=1e-4)
+        assert shift[1, row, col].item() == pytest.approx((seen[1] - v) / 4, abs=1e-4)
+    assert not shift[:, :16].any()  # above the horizon: no road, no prior flow
+    features, maps = torch.randn(1, 3, 32, 48), torch.randn(1, 5, 32, 48)
+    assert torch.allclose(warp(features, maps), maps, atol=1e-5)  # standing still: the identity
+    moved = warp(features, maps, torch.tensor([travel]))
+    assert torch.allclose(moved[:, :, :16], maps[:, :, :16], atol=1e-5)
+    assert not torch.allclose(moved[:, :, 20:], maps[:, :, 20:], atol=1e-2)
+
+
+def test_a_model_saved_before_the_road_flow_loads_without_it():
+    saved = WorldModelConfig(ground_flow=True).to_dict()
+    assert WorldModelConfig.from_dict(saved).ground_flow is True
+    del saved["ground_flow"]
+    assert WorldModelConfig.from_dict(saved).ground_flow is False
 
 
 def test_config_rejects_image_size_not_divisible():
@@ -176,7 +209,7 @@ def sensor_frame(run: str, seq: int, rng: np.random.Generator) -> Frame:
 
 @pytest.fixture
 def weights(tmp_path):
-    save_world_model(tiny_model(seed=2), tmp_path / "wm")
+    save_world_model(tiny_model(seed=2, ground_flow=True), tmp_path / "wm")
     return tmp_path / "wm.safetensors"
 
 
@@ -204,7 +237,8 @@ def test_predictor_outputs_and_predictions_made_earlier(weights):
         assert np.allclose(out["recon"], result.rgb[0, 4].permute(1, 2, 0).numpy(), atol=1e-5)
         for i in (1, 2, 3):
             start = State(result.states.h[:, 4 - i], result.states.z[:, 4 - i])
-            expected = model.imagine(start, taken[:, 4 - i : 4], i).rgb[0, -1].permute(1, 2, 0).numpy()
+            speed = seq_obs.speed[:, 4 - i, 0]  # the speed of the frame the rollout started from
+            expected = model.imagine(start, taken[:, 4 - i : 4], i, speed=speed).rgb[0, -1].permute(1, 2, 0).numpy()
             assert np.allclose(out["preds"][i - 1], expected, atol=1e-5), f"x̂_(t|t-{i})"
 
 
@@ -376,7 +410,7 @@ def test_training_rollouts_start_from_consecutive_posterior_states_and_match_the
         rollout_starts,
     )
 
-    model = tiny_model()
+    model = tiny_model(ground_flow=True)
     obs, actions = random_observation(model.config, b=2, t=6)
     train = TrainConfig(sequence_length=6, prediction_steps=2, prediction_starts=3)
     assert list(rollout_starts(6, train)) == [1, 2, 3]  # the last start leaves 2 frames: 4 and 5
@@ -384,10 +418,10 @@ def test_training_rollouts_start_from_consecutive_posterior_states_and_match_the
     assert prediction_targets(frames, train).flatten().tolist() == [2, 3, 3, 4, 4, 5]
     with torch.no_grad():
         result = model.observe(obs, actions)
-        predicted = open_loop_predictions(model, result, actions, train)
+        predicted = open_loop_predictions(model, result, actions, obs.speed, train)
         assert predicted.shape == (2, 6, 3, model.config.image_height, model.config.image_width)
         start = State(result.states.h[:, 2], result.states.z[:, 2])  # the second rollout, on its own
-        alone = model.imagine(start, actions[:, 3:5]).rgb
+        alone = model.imagine(start, actions[:, 3:5], speed=obs.speed[:, 2, 0]).rgb
     assert torch.allclose(predicted[:, 2:4], alone, atol=1e-6)
     with pytest.raises(ValueError, match="prediction_starts 5"):
         TrainConfig(sequence_length=6, prediction_steps=2, prediction_starts=5)
@@ -416,7 +450,7 @@ def test_evaluation_predictions_are_the_prior_rolled_from_k_steps_back(tiny_benc
     from umad_common.training.evaluate_world_model import filter_drive, predict_drive
     from umad_common.training.train_world_model import load_drive
 
-    model = tiny_model()
+    model = tiny_model(ground_flow=True)
     drive = load_drive(label_free_scenario(tiny_benchmark / "normal" / "Scenario_n0"), model.config)
     posterior, _ = filter_drive(model, drive, chunk=5)  # chunked filtering = one pass
     actions = torch.from_numpy(drive.action)[None]  # (1, T, 2) the action taken after frame t
@@ -425,7 +459,9 @@ def test_evaluation_predictions_are_the_prior_rolled_from_k_steps_back(tiny_benc
             assert list(frames) == list(range(k, len(drive)))
             for t in (k, len(drive) - 1):
                 start = State(posterior.h[t - k : t - k + 1], posterior.z[t - k : t - k + 1])
-                expected = model.imagine(start, actions[:, t - k : t], k).rgb[0, -1].permute(1, 2, 0).numpy()
+                speed = torch.tensor([drive.speed[t - k] / model.config.speed_scale])
+                expected = model.imagine(start, actions[:, t - k : t], k, speed=speed).rgb[0, -1]
+                expected = expected.permute(1, 2, 0).numpy()
                 assert np.allclose(predicted[t - k], expected, atol=1e-5), (k, t)
 
 

@@ -26,6 +26,7 @@ here too, so training, evaluation and the predictor operator feed the model iden
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import NamedTuple
@@ -69,6 +70,15 @@ class WorldModelConfig:
     #   the 3-step predictions were worst at the image's sides (20.6 dB there vs 25.5 in the centre), where
     #   facades pass 2-3 cells per step at 9 m/s, further than a convolution's reach
     motion_channels: int = 32  # width of the motion head that predicts the warp
+    ground_flow: bool = False  # the warp starts from the flow a flat road makes under the camera at the
+    #   current speed (below the horizon; `MotionWarp.ground_source`), and the head learns the rest: the
+    #   learned warp alone moved the road 0.1-0.3 cells per step where it moves 1.5-4 near the car at 9 m/s.
+    #   +0.74 dB at 3 steps on validation seed 2 in the 8-epoch comparison (README); off until a model
+    #   trained with it ships
+    camera_fov: float = 90.0  # horizontal field of view (deg) of the camera, square pixels (AnoVox and the
+    #   built-in world)
+    camera_height: float = 1.8  # metres above the road (AnoVox and the built-in world)
+    frame_rate: float = 10.0  # dataset frames per second (AnoVox: 10 Hz); a model step is frame_step frames
     min_std: float = 0.1  # floor of the latent standard deviation
     frame_step: int = 1  # dataset frames per model step the model was trained with
 
@@ -253,15 +263,18 @@ class ConvGRUCell(nn.Module):
 class MotionWarp(nn.Module):
     """Moves the state with the scene before the GRU updates it.
 
-    A small head reads the state, the action and each cell's position (driving forward, the scene
-    flows outward from the vanishing point, faster at the sides and the nearer it is) and predicts
-    a displacement per cell, in cells, bounded by `max_shift`; the maps are then resampled
-    bilinearly from where their content was a step before. The head's last layer starts at zero,
-    so an untrained warp is the identity and the model learns how far each cell moves."""
+    Driving forward, the scene flows outward from the vanishing point, faster at the sides and the
+    nearer it is. With `ground_flow`, the warp starts from the flow of a flat road at the current
+    speed (`ground_source`); a small head reads the state, the action and each cell's position and
+    adds a displacement per cell, in cells, bounded by `max_shift` (what is not road: facades, cars,
+    a road that is not flat). The maps are then resampled bilinearly from where their content was a
+    step before. The head's last layer starts at zero, so an untrained warp is the road's flow alone
+    (or the identity without `ground_flow`) and the model learns the rest."""
 
-    def __init__(self, in_channels: int, hidden: int, max_shift: float, grid: tuple[int, int]):
+    def __init__(self, in_channels: int, config: WorldModelConfig):
         super().__init__()
-        self.max_shift = max_shift
+        self.max_shift, self.ground_flow = config.max_shift, config.ground_flow
+        hidden = config.motion_channels
         self.net = nn.Sequential(
             nn.Conv2d(in_channels + 2, hidden, 5, padding=2),
             nn.SiLU(),
@@ -271,17 +284,38 @@ class MotionWarp(nn.Module):
         )
         nn.init.zeros_(self.net[-1].weight)
         nn.init.zeros_(self.net[-1].bias)
-        rows, cols = grid
+        rows, cols = config.grid
         ys, xs = torch.meshgrid(torch.linspace(-1, 1, rows), torch.linspace(-1, 1, cols), indexing="ij")
         self.register_buffer("position", torch.stack([xs, ys])[None], persistent=False)  # (1, 2, rows, cols)
         self.register_buffer(
             "cell", torch.tensor([2.0 / max(cols - 1, 1), 2.0 / max(rows - 1, 1)]), persistent=False
         )  # one cell in grid_sample's [-1, 1] units, (x, y)
+        # Road flow: a road point seen at (u, v) pixels from the image centre (v > 0: below the horizon)
+        # lies at depth d = f · camera_height / v; after the camera moves t metres forward it is at d - t,
+        # so a step before it was seen at (u, v) / (1 + k), k = t · v / (f · camera_height).
+        cell_px = config.image_width / cols
+        focal = config.image_width / 2 / math.tan(math.radians(config.camera_fov) / 2)  # px, square pixels
+        u = (torch.arange(cols) + 0.5) * cell_px - config.image_width / 2
+        v = (torch.arange(rows) + 0.5) * cell_px - config.image_height / 2
+        vv, uu = torch.meshgrid(v, u, indexing="ij")
+        self.register_buffer("offset", torch.stack([uu, vv])[None] / cell_px, persistent=False)  # cells from the centre
+        self.register_buffer(
+            "road_rate", (vv.clamp(min=0) / (focal * config.camera_height))[None, None], persistent=False
+        )  # k per metre of travel, (1, 1, rows, cols)
 
-    def forward(self, features: torch.Tensor, maps: torch.Tensor) -> torch.Tensor:
-        """Warp `maps` (B, C, rows, cols) by the motion read from `features` (B, F, rows, cols)."""
+    def ground_source(self, travel: torch.Tensor) -> torch.Tensor:
+        """(B, 2, rows, cols) shift in cells to where the road's content was before the camera moved
+        `travel` (B,) metres forward; zero above the horizon."""
+        k = self.road_rate * travel.float().view(-1, 1, 1, 1)
+        return -self.offset * k / (1 + k)
+
+    def forward(self, features: torch.Tensor, maps: torch.Tensor, travel: torch.Tensor | None = None) -> torch.Tensor:
+        """Warp `maps` (B, C, rows, cols) by the motion read from `features` (B, F, rows, cols) and, with
+        `ground_flow`, the road's flow after `travel` (B,) metres forward (None: standing still)."""
         position = self.position.to(features.dtype).expand(features.shape[0], -1, -1, -1)
         shift = self.max_shift * torch.tanh(self.net(torch.cat([features, position], dim=1)).float())
+        if self.ground_flow and travel is not None:
+            shift = shift + self.ground_source(travel)
         source = self.position + shift * self.cell[None, :, None, None]  # where each cell's content was
         return F.grid_sample(
             maps.float(), source.permute(0, 2, 3, 1), mode="bilinear", padding_mode="border", align_corners=True
@@ -335,7 +369,7 @@ class WorldModel(nn.Module):
         self.lidar_encoder = VectorEncoder(4, c.lidar_channels, c.lidar_rows, c.lidar_width, c.lidar_embed)
         self.route_encoder = VectorEncoder(1, c.route_channels, c.route_size, c.route_size, c.route_embed)
         self.side = nn.Linear(c.lidar_embed + c.route_embed + 1, c.side_channels)  # + speed
-        self.motion = MotionWarp(c.deter_channels + c.stoch_channels + 2, c.motion_channels, c.max_shift, c.grid)
+        self.motion = MotionWarp(c.deter_channels + c.stoch_channels + 2, c)
         self.gru = ConvGRUCell(c.stoch_channels + 2, c.deter_channels, c.transition_kernel)
         self.prior_net = grid_head(c.deter_channels, c.hidden_channels, 2 * c.stoch_channels)
         embed_channels = c.image_channels[-1] + c.side_channels
@@ -378,20 +412,28 @@ class WorldModel(nn.Module):
         mean, raw_std = params.chunk(2, dim=1)  # channel halves -> (B, stoch_channels, rows, cols) each
         return mean.flatten(1), F.softplus(raw_std).flatten(1) + self.config.min_std
 
-    def transition(self, state: State, action: torch.Tensor, move: bool) -> torch.Tensor:
+    def transition(
+        self, state: State, action: torch.Tensor, move: bool, speed: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """h_t from s_{t-1} and the action a_{t-1} (B, 2) taken after it -> (B, deter_dim).
 
-        `move` (predicting: `imagine`) first moves the state with the scene (MotionWarp), then the
-        GRU updates it. Filtering (`observe`) leaves the warp out: a warp also carries what the
-        posterior drew a step before, an anomaly included, into the next frame's prior, so the
-        reconstructions would learn to redraw an object they never saw once it has been in view
-        (measured on validation seed 2 with the warp in both: abs+ssim+perceptual AP without masks
-        35.8 -> 28.4 %, while the 3-step prediction gained 1.9 dB)."""
+        `move` (predicting: `imagine`) first moves the state with the scene (MotionWarp; with
+        `ground_flow` it needs `speed` (B,): the model's speed input, m/s / speed_scale, of the frame
+        the rollout started from, taken as constant over the step), then the GRU updates it.
+        Filtering (`observe`) leaves the warp out: a warp also carries what the posterior drew a step
+        before, an anomaly included, into the next frame's prior, so the reconstructions would learn
+        to redraw an object they never saw once it has been in view (measured on validation seed 2
+        with the warp in both: abs+ssim+perceptual AP without masks 35.8 -> 28.4 %, while the 3-step
+        prediction gained 1.9 dB)."""
         h, z = self.as_grid(state.h), self.as_grid(state.z)
         action_grid = action[:, :, None, None].expand(-1, -1, *z.shape[2:]).to(z.dtype)
         if move:
+            c = self.config
+            if c.ground_flow and speed is None:
+                raise ValueError("transition: this model's warp follows the road at the current speed; pass `speed`")
+            travel = None if speed is None else speed.reshape(-1) * c.speed_scale * c.frame_step / c.frame_rate
             state_grid = torch.cat([h, z], dim=1)
-            h, z = self.motion(torch.cat([state_grid, action_grid], dim=1), state_grid).split(
+            h, z = self.motion(torch.cat([state_grid, action_grid], dim=1), state_grid, travel).split(
                 [h.shape[1], z.shape[1]], dim=1
             )
         return self.gru(torch.cat([z, action_grid], dim=1), h).flatten(1)
@@ -446,16 +488,19 @@ class WorldModel(nn.Module):
             rgb=rgb.view(b, t, *rgb.shape[1:]),
         )
 
-    def imagine(self, state: State, actions: torch.Tensor, n: int | None = None) -> ImagineResult:
+    def imagine(
+        self, state: State, actions: torch.Tensor, n: int | None = None, speed: torch.Tensor | None = None
+    ) -> ImagineResult:
         """Roll the prior forward n steps from `state` (B, .) with actions (B, >=n, 2) (row k = the
         action after imagined step k-1, i.e. after `state` for k = 0) and decode the predicted frames.
-        The prior mean is used: predictions are deterministic."""
+        `speed` (B,): the model's speed input of the frame `state` was filtered on (needed with
+        `ground_flow`). The prior mean is used: predictions are deterministic."""
         n = actions.shape[1] if n is None else n
         if actions.shape[1] < n:
             raise ValueError(f"imagine: {actions.shape[1]} actions for {n} steps; expected at least {n}")
         hs, zs = [], []
         for step in range(n):
-            h = self.transition(state, actions[:, step], move=True)
+            h = self.transition(state, actions[:, step], move=True, speed=speed)
             state = State(h, self.prior(h)[0])
             hs.append(state.h)
             zs.append(state.z)

@@ -6,7 +6,8 @@ error ratio.
   and any other folder of normal drives gives all of them. Per drive, the posterior is filtered
   from the drive's start; figures: PSNR of the reconstruction x̂_t and of the predictions
   x̂_{t|t-k} for k = 1..horizon (the prior rolled k steps forward from the posterior state of
-  frame t-k with the actions actually taken, never having seen the frames since).
+  frame t-k with the actions actually taken and the speed of frame t-k, never having seen the
+  frames since).
 - Anomalous drives (DATA/anomalous): mean |x − x̂_t| (over r, g, b) inside the anomaly mask against
   the same on road pixels outside it (semantic tag 1 road or 24 road line). The model never saw an
   anomaly, so it should not draw one: the ratio must be well above 1. Labels are resized
@@ -53,11 +54,17 @@ def predict_drive(model: WorldModel, drive: DriveArrays, posterior: State, horiz
     predictions x̂_{t|t-k} (len, H, W, 3), made by advancing the prior one step at a time with the
     action taken after each frame, from the posterior state of frame t-k."""
     actions = torch.from_numpy(drive.action)  # (T, 2) the action taken after frame t
+    speed = torch.from_numpy(drive.speed) / model.config.speed_scale  # row j: the speed of origin frame j
     states = posterior
     for k in range(1, horizon + 1):
         if len(drive) <= k:
             return
-        h = model.transition(State(states.h[:-1], states.z[:-1]), actions[k - 1 : len(drive) - 1], move=True)
+        h = model.transition(
+            State(states.h[:-1], states.z[:-1]),
+            actions[k - 1 : len(drive) - 1],
+            move=True,
+            speed=speed[: len(drive) - k],
+        )
         states = State(h, model.prior(h)[0])  # row j: prediction of frame j + k
         images = [
             model.decode(State(states.h[i : i + chunk], states.z[i : i + chunk])).permute(0, 2, 3, 1).numpy()

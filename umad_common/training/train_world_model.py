@@ -261,15 +261,19 @@ def rollout_starts(length: int, train: TrainConfig) -> range:
     return range(first, first + train.prediction_starts)
 
 
-def open_loop_predictions(model: WorldModel, result: ObserveResult, prev_actions: torch.Tensor, train: TrainConfig):
+def open_loop_predictions(
+    model: WorldModel, result: ObserveResult, prev_actions: torch.Tensor, speed: torch.Tensor, train: TrainConfig
+):
     """The prior rolled `prediction_steps` steps from each start state (`rollout_starts`) with the
-    actions taken, all rollouts in one batch: (B, starts x steps, 3, H, W), start by start."""
+    actions taken and the speed (B, T, 1) of the start frame, all rollouts in one batch:
+    (B, starts x steps, 3, H, W), start by start."""
     starts = rollout_starts(result.states.h.shape[1], train)
     steps = train.prediction_steps
     h = torch.stack([result.states.h[:, s] for s in starts], 1).flatten(0, 1)  # (B * starts, deter_dim)
     z = torch.stack([result.states.z[:, s] for s in starts], 1).flatten(0, 1)
     actions = torch.stack([prev_actions[:, s + 1 : s + 1 + steps] for s in starts], 1).flatten(0, 1)
-    rgb = model.imagine(State(h, z), actions).rgb  # (B * starts, steps, 3, H, W)
+    start_speed = torch.stack([speed[:, s, 0] for s in starts], 1).flatten()
+    rgb = model.imagine(State(h, z), actions, speed=start_speed).rgb  # (B * starts, steps, 3, H, W)
     return rgb.view(prev_actions.shape[0], len(starts) * steps, *rgb.shape[2:])
 
 
@@ -359,7 +363,7 @@ def train_world_model(
             obs = scale_speed(obs, model_config)
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
                 result = model.observe(obs, prev_actions, sample=train.sample_posterior)
-                predicted = open_loop_predictions(model, result, prev_actions, train)
+                predicted = open_loop_predictions(model, result, prev_actions, obs.speed, train)
             terms = world_model_loss(result, predicted, obs, train)
             optimizer.zero_grad(set_to_none=True)
             terms["loss"].backward()
