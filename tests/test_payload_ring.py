@@ -22,6 +22,7 @@ from umad_common.mcap_log import read_log
 from umad_common.messages import Message, MessageError, decode, encode
 from umad_common.payload_ring import (
     INLINE_BELOW,
+    RING_DIR,
     PayloadReader,
     PayloadRing,
     fetch,
@@ -166,7 +167,7 @@ def test_the_launcher_sweeps_a_replicas_ring_only_after_a_grace(tmp_path, hub_en
 
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     pid = int(dead.stdout)
-    ring_file = launcher.RING_DIR / f"umad-{pid}-00ff-1.ring"
+    ring_file = RING_DIR / f"umad-{pid}-00ff-1.ring"
     ring_file.write_bytes(b"x")
     graph_file = toy_graph(tmp_path, hub_endpoint)
     sweeper = launcher.Launcher(load_graph(graph_file), graph_file, quiet=True)

@@ -31,7 +31,7 @@ import zenoh
 from umad_common.bus import Keys, answer, cleanup_stale_shm, close_session, open_client
 from umad_common.graph import Graph, GraphError, OperatorSpec, load_graph
 from umad_common.mcap_log import McapRecorder
-from umad_common.payload_ring import RING_DIR, SWEPT_BY_LAUNCHER, PayloadReader, fetch, remove_stale_rings
+from umad_common.payload_ring import SWEPT_BY_LAUNCHER, PayloadReader, fetch, remove_stale_rings
 from umad_common.runtime import EXIT_CONFIG
 
 log = logging.getLogger("umad.launch")
@@ -389,7 +389,7 @@ class Launcher:
         now = time.monotonic()
         recent = {pid for pid, when in self._exited.items() if now - when < RING_GRACE_S}
         if len(recent) < len(self._exited):
-            remove_stale_rings(RING_DIR, spare_pids=recent)
+            remove_stale_rings(spare_pids=recent)
             self.payloads.forget_gone()
             self._exited = {pid: self._exited[pid] for pid in recent}
 
