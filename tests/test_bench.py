@@ -38,7 +38,8 @@ def test_bus_bench_measures_the_runtime_against_bare_zenoh_and_one_process(tmp_p
     out = tmp_path / "bench.json"
     assert umad_main(["bench", "bus", "--frames", "24", "--hub", hub_endpoint, "--out", str(out)]) == 0
     bus = json.loads(out.read_text())["bus"]
-    for side in ("in_process", "bare_zenoh_window_8", "bus_window_8", "bus_window_8_through_zenoh", "bus_window_1"):
+    sides = ("bare_zenoh_window_8", "bus_window_8", "bus_window_8_through_zenoh", "bus_window_8_through_hub")
+    for side in ("in_process", *sides, "bus_window_1"):
         assert bus[side]["fps"] > 0 and bus[side]["cpu_ms_per_frame"] > 0, side
         assert bus[side]["p99_ms"] >= bus[side]["p50_ms"] > 0, side
     assert bus["fps_ratio_bus_through_zenoh_over_bare_zenoh"] == pytest.approx(
@@ -46,5 +47,8 @@ def test_bus_bench_measures_the_runtime_against_bare_zenoh_and_one_process(tmp_p
     )
     assert bus["fps_ratio_bus_over_bus_through_zenoh"] == pytest.approx(
         bus["bus_window_8"]["fps"] / bus["bus_window_8_through_zenoh"]["fps"]
+    )
+    assert bus["fps_ratio_bus_over_bus_through_hub"] == pytest.approx(
+        bus["bus_window_8"]["fps"] / bus["bus_window_8_through_hub"]["fps"]
     )
     assert "| bus | bare_zenoh_window_8.fps |" in out.with_suffix(".md").read_text()

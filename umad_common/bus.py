@@ -24,6 +24,7 @@ import zenoh
 from umad_common.payload_ring import remove_stale_rings
 
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
+DIRECT_LINK_LISTEN = "tcp/127.0.0.1:0"  # a peer replica's own endpoint for its direct links (any free port)
 CONTROL_PRIORITY = zenoh.Priority.INTERACTIVE_HIGH  # commands and their answers overtake queued frames
 SHM_DIR = Path("/dev/shm")
 log = logging.getLogger("umad.bus")
@@ -87,8 +88,15 @@ def open_client(
     shared_memory: bool = True,
     retry: bool = True,
     shm_pool_mib: int | None = None,
+    direct_links: bool = False,
 ) -> zenoh.Session | None:
     """A client session connected to the hub at `endpoint`, waiting for the hub as long as it takes.
+
+    `direct_links=True`: a peer-mode session instead. It connects to the hub too, learns the other
+    peers from it (gossip) and links to them directly over loopback, so what they send each other
+    skips the hub: one process and one socket hop less per message (bare Zenoh chain of three
+    processes on 2 cores, 1 KB messages: 1.4x the messages per second). For replicas on the hub's
+    host only: it listens on 127.0.0.1.
 
     With `cancel` or `timeout_s`, the wait happens off the main thread so a signal can end it, or
     it gives up after `timeout_s`: returns None then. `shared_memory=False` for a session that
@@ -96,7 +104,13 @@ def open_client(
     `retry=False`: no hub listening returns None at once. `shm_pool_mib` as in `zenoh_config`.
     """
     conf = zenoh_config(
-        "client", connect=[endpoint], tls=tls, shared_memory=shared_memory, retry=retry, shm_pool_mib=shm_pool_mib
+        "peer" if direct_links else "client",
+        listen=[DIRECT_LINK_LISTEN] if direct_links else None,
+        connect=[endpoint],
+        tls=tls,
+        shared_memory=shared_memory,
+        retry=retry,
+        shm_pool_mib=shm_pool_mib,
     )
     if cancel is None and timeout_s is None:
         return zenoh.open(conf)

@@ -72,6 +72,12 @@ class GraphSpec(BaseModel):
         description="large payloads are written once into a shared-memory ring on the publisher's host and "
         "Zenoh carries a reference (subscribers on other hosts fetch them); false: every payload through Zenoh",
     )
+    direct_links: bool = Field(
+        True,
+        description="replicas on the hub's host link to each other directly (Zenoh peers that find each other "
+        "through the hub), so messages between them skip the hub; false, or a graph with tls: every message "
+        "through the hub",
+    )
     tls: TlsSpec | None = None
     base_dir: str | None = Field(
         None, description="folder that relative paths in params resolve against (default: the graph file's)"

@@ -605,14 +605,21 @@ def run_operator(
     shutdown = ShutdownSignal()
     tls = graph.tls_config()
     hub = connect or graph.spec.hub
-    session = open_client(hub, tls, cancel=shutdown.event, shm_pool_mib=graph.spec.shm_pool_mib)
+    local = on_this_host(hub)
+    session = open_client(
+        hub,
+        tls,
+        cancel=shutdown.event,
+        shm_pool_mib=graph.spec.shm_pool_mib,
+        direct_links=local and graph.spec.direct_links and tls is None,
+    )
     if session is None:
         log.info("stopped while waiting for the hub at %s", hub)
         _exit(0)
     code = 0
     try:
         runtime = OperatorRuntime(
-            graph, op_id, replica, session, shutdown.event, max_frames, replay_log, allow_truncated, on_this_host(hub)
+            graph, op_id, replica, session, shutdown.event, max_frames, replay_log, allow_truncated, local
         )
     except Exception as exc:  # bad parameters, missing weights: say so once, do not restart
         log.error("operator %s could not start: %s: %s", op_id, type(exc).__name__, exc)

@@ -4,9 +4,10 @@ the price of the bus itself (transport, joining, acks), not of serialisation. Th
 runs in a process of its own at the operators' CPU priority (the launcher lowers theirs), so on a
 machine busy with other work both sides compete for the CPU on the same terms.
 
-The bus runs twice at window 8: as graphs run (payloads through the publishers' shared-memory rings,
-Zenoh carrying references: `payload_ring.py`), and with `shared_payloads: false` (every payload
-through Zenoh). Their ratio is what the rings buy.
+The bus runs three times at window 8: as graphs run (payloads through the publishers' shared-memory
+rings, Zenoh carrying references: `payload_ring.py`; replicas linked directly, not through the hub),
+with `shared_payloads: false` (every payload through Zenoh), and with `direct_links: false` (every
+message through the hub). Their ratios are what the rings and the direct links buy.
 
 Between in-process and the bus, the floor of a dataflow that moves its payloads through Zenoh: the
 same three processes doing the same work on plain Zenoh sessions (`bare_zenoh`: a publisher, a
@@ -111,7 +112,13 @@ def chain_in_process(frames: int, size_bytes: int) -> dict:
 
 
 def over_bus(
-    frames: int, size_bytes: int, hub: str, window: int, shm_pool_mib: int | None = None, shared_payloads: bool = True
+    frames: int,
+    size_bytes: int,
+    hub: str,
+    window: int,
+    shm_pool_mib: int | None = None,
+    shared_payloads: bool = True,
+    direct_links: bool = True,
 ) -> dict:
     """source -> relay -> sink as three processes on a hub; latency is send-to-ack at the source;
     CPU is the three processes' from their first frame on (the hub's not counted)."""
@@ -121,6 +128,7 @@ def over_bus(
             "hub": hub,
             "shm_pool_mib": shm_pool_mib,
             "shared_payloads": shared_payloads,
+            "direct_links": direct_links,
             "operators": [
                 {
                     "id": "source",
@@ -272,6 +280,7 @@ def bench_bus(
     bare = bare_zenoh(frames, size_bytes, hub, window=8)
     bus = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib)
     through_zenoh = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib, shared_payloads=False)
+    through_hub = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib, direct_links=False)
     bus1 = over_bus(frames, size_bytes, hub, window=1, shm_pool_mib=shm_pool_mib)
     keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame")
     return {
@@ -282,9 +291,11 @@ def bench_bus(
         "bare_zenoh_window_8": bare,
         "bus_window_8": {k: bus[k] for k in keep},
         "bus_window_8_through_zenoh": {k: through_zenoh[k] for k in keep},
+        "bus_window_8_through_hub": {k: through_hub[k] for k in keep},
         "bus_window_1": {k: bus1[k] for k in keep},
         "fps_ratio_bus_over_in_process": bus["fps"] / local["fps"],
         "fps_ratio_bus_over_bus_through_zenoh": bus["fps"] / through_zenoh["fps"],
+        "fps_ratio_bus_over_bus_through_hub": bus["fps"] / through_hub["fps"],
         "fps_ratio_bare_zenoh_over_in_process": bare["fps"] / local["fps"],
         "fps_ratio_bus_through_zenoh_over_bare_zenoh": through_zenoh["fps"] / bare["fps"],
         "p50_ratio_bus_window_1_over_in_process": bus1["p50_ms"] / local["p50_ms"],
