@@ -80,6 +80,24 @@ def test_a_ring_that_cannot_be_created_sends_payloads_inline(tmp_path):
     assert "cannot create" in ring.disabled_because
 
 
+def test_a_payload_decoded_where_it_lies_is_copied_out_or_dropped_if_overwritten_meanwhile(tmp_path):
+    ring, reader = PayloadRing("umad/t", tmp_path), PayloadReader(tmp_path)
+    message = reader.read(ring.pack(payload(INLINE_BELOW, 1)), decode)
+    for fill in range(2, 200):  # round the ring several times
+        ring.pack(payload(INLINE_BELOW, fill))
+    assert message.seq == 1 and (message.arrays["x"] == 1).all()  # its array was copied out of the ring
+
+    def decode_while_the_publisher_goes_round(view):
+        decoded = decode(view)
+        for fill in range(200):
+            ring.pack(payload(INLINE_BELOW, fill))
+        return decoded
+
+    assert reader.read(ring.pack(payload(INLINE_BELOW, 2)), decode_while_the_publisher_goes_round) is None
+    assert reader.read(payload(100, 3), decode).seq == 3  # an inline payload is decoded as it came
+    ring.close()
+
+
 def test_a_reader_that_cannot_map_the_ring_fetches_from_the_publisher(tmp_path, hub_endpoint):
     hub = open_hub(hub_endpoint)
     publisher, subscriber = open_client(hub_endpoint), open_client(hub_endpoint)

@@ -15,7 +15,7 @@ import zenoh
 
 from umad_common.bus import zenoh_config
 from umad_common.graph import validate_graph
-from umad_common.messages import Message, encode
+from umad_common.messages import Message, decode, encode
 from umad_common.runtime import OperatorRuntime, Received
 
 GRAPH = {
@@ -42,7 +42,7 @@ class Counting:
 
 def received(port: str, producer: str, output: str, seq: int) -> Received:
     msg = Message("run0", seq, seq, producer, {}, {"x": np.full(4, float(seq), np.float32)})
-    return Received(port, f"umad/routes/{producer}/{output}", encode(msg), None, time.time())
+    return Received(port, f"umad/routes/{producer}/{output}", decode(encode(msg)), None, time.time())
 
 
 @pytest.fixture

@@ -119,7 +119,7 @@ def decode(payload: bytes | bytearray | memoryview, max_bytes: int = MAX_MESSAGE
         raise MessageError(f"payload of {size} bytes exceeds the {max_bytes}-byte cap")
     try:
         obj = msgpack.unpackb(
-            bytes(payload),
+            payload,  # read in place; every binary comes out as new bytes
             raw=False,
             strict_map_key=True,
             max_bin_len=max_bytes,

@@ -32,8 +32,9 @@ import socket
 import struct
 import threading
 from collections import OrderedDict
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from pathlib import Path
+from typing import TypeVar
 
 import zenoh
 
@@ -55,6 +56,7 @@ _RESERVED_AT = 16
 _ALIGN = 64
 _REFERENCE = struct.Struct("<QQ")  # start (in bytes ever written), length; then the ring's file name
 _RING_NAME = re.compile(r"^umad-(\d+)-([0-9a-f]+)-(\d+)\.ring$")
+T = TypeVar("T")
 
 
 def on_this_host(endpoint: str) -> bool:
@@ -183,9 +185,10 @@ class PayloadRing:
 
 class PayloadReader:
     """A subscriber's side: `take(payload)` returns the payload a reference points to, copied out of
-    the ring, or the payload itself when it travelled inline; None when the ring is not reachable
-    from here (another host) or was overwritten first: `fetch` then asks the publisher.
-    Thread-safe: Zenoh's callbacks take, another thread may forget."""
+    the ring, or the payload itself when it travelled inline; `read(payload, parse)` parses it
+    where it lies instead (e.g. decodes it, copying each array out once). Both give None when the
+    ring is not reachable from here (another host) or was overwritten first: `fetch` then asks the
+    publisher. Thread-safe: Zenoh's callbacks take, another thread may forget."""
 
     def __init__(self, directory: Path = RING_DIR):
         self.directory = directory
@@ -193,28 +196,30 @@ class PayloadReader:
         self._lock = threading.Lock()
 
     def take(self, payload: bytes) -> bytes | None:
+        return self.read(payload, bytes)
+
+    def read(self, payload: bytes, parse: Callable[[bytes | memoryview], T]) -> T | None:
+        """`parse` of the payload: of a view into the ring for a reference (`parse` must copy what
+        it keeps, and its result is dropped if the publisher overwrote the payload meanwhile), of
+        the payload itself when it travelled inline."""
         if not is_reference(payload):
-            return payload
+            return parse(payload)
         try:
             name, start, length = _parse(payload)
         except ValueError:
-            return payload  # not ours to judge: decoding says what is wrong with it
+            return parse(payload)  # not ours to judge: decoding says what is wrong with it
         with self._lock:
-            return self._copy(name, start, length)
-
-    def _copy(self, name: str, start: int, length: int) -> bytes | None:
-        ring = self._maps[name] if name in self._maps else self._open(name)
-        if ring is None:
-            return None
-        capacity = len(ring) - _HEADER
-        offset = start % capacity
-        if length > capacity - offset:
-            return None
-        data = ring[_HEADER + offset : _HEADER + offset + length]
-        (reserved,) = struct.unpack_from("<Q", ring, _RESERVED_AT)
-        if not start + length <= reserved <= start + capacity:
-            return None
-        return data
+            ring = self._maps[name] if name in self._maps else self._open(name)
+            if ring is None:
+                return None
+            capacity = len(ring) - _HEADER
+            offset = start % capacity
+            if length > capacity - offset:
+                return None
+            with memoryview(ring) as whole, whole[_HEADER + offset : _HEADER + offset + length] as view:
+                result = parse(view)
+            (reserved,) = struct.unpack_from("<Q", ring, _RESERVED_AT)
+            return result if start + length <= reserved <= start + capacity else None
 
     def _open(self, name: str) -> mmap.mmap | None:
         try:

@@ -58,7 +58,6 @@ from umad_common.payload_ring import (
     PayloadReader,
     PayloadRing,
     fetch,
-    is_reference,
     on_this_host,
 )
 from umad_common.source_driver import SourceDriver
@@ -75,14 +74,15 @@ EXIT_CONFIG = 3  # an operator that exits with this failed on its configuration:
 
 
 class Received(NamedTuple):
-    """One input message as the subscriber took it: its bytes are copied out of Zenoh's shared
-    memory, or out of the publisher's payload ring, at once, so a busy operator's queue never holds
-    shared memory a publisher is about to reuse. A payload the ring could not give (its publisher
-    runs on another host) stays a reference until the transform loop fetches it."""
+    """One input message as the subscriber took it: decoded at once, straight out of the
+    publisher's payload ring (each array copied out once) or out of what Zenoh delivered, so a busy
+    operator's queue never holds shared memory a publisher is about to reuse. A payload the ring
+    could not give (its publisher runs on another host) stays a reference until the transform loop
+    fetches it."""
 
     port: str
     key: str
-    payload: bytes
+    message: Message | MessageError | bytes  # decoded, refused, or a reference still to fetch
     sent: float | None  # the producer's put, from the sample's timestamp (wall clock, seconds)
     arrived: float  # wall clock
 
@@ -91,8 +91,15 @@ class Received(NamedTuple):
         stamp = sample.timestamp
         sent = None if stamp is None else stamp.get_time_as_ntp64().as_secs_f64()
         raw = sample.payload.to_bytes()
-        payload = reader.take(raw)
-        return cls(port, str(sample.key_expr), raw if payload is None else payload, sent, time.time())
+        message = reader.read(raw, decode_or_refuse)
+        return cls(port, str(sample.key_expr), raw if message is None else message, sent, time.time())
+
+
+def decode_or_refuse(payload: bytes | memoryview) -> Message | MessageError:
+    try:
+        return decode(payload)
+    except MessageError as exc:
+        return exc
 
 
 class OperatorRuntime:
@@ -354,19 +361,20 @@ class OperatorRuntime:
             self.reader.forget_gone()
             self.stats_pub.put(json.dumps({"op": self.op_id, "replica": self.replica_id, **snap}).encode())
 
-    def _payload_of(self, received: Received) -> bytes | None:
-        """The message's bytes; a reference to a ring this host cannot map is fetched from its
-        publisher. A payload nobody has any more is counted in `lost_payloads` and left to the
-        source's retransmission, which brings the frame again."""
-        if not is_reference(received.payload):
-            return received.payload
-        payload = fetch(self.session, self.keys.root, received.payload)
+    def _message_of(self, received: Received) -> Message | MessageError | None:
+        """The message; a reference to a ring this host cannot map is fetched from its publisher. A
+        payload nobody has any more is counted in `lost_payloads` and left to the source's
+        retransmission, which brings the frame again."""
+        if not isinstance(received.message, bytes):
+            return received.message
+        payload = fetch(self.session, self.keys.root, received.message)
         if payload is None:
             self.stats.lost_payloads += 1
             self.log.warning(
                 "payload on %s could not be fetched from its publisher; waiting for a resend", received.key
             )
-        return payload
+            return None
+        return decode_or_refuse(payload)
 
     def _warn_bad_message(self, key: str, exc: MessageError) -> None:
         """Log the first few malformed messages in full, then one summary line per interval: a flood
@@ -533,14 +541,12 @@ class OperatorRuntime:
                 received = None
             if received is not None:
                 self._count_arrival(received)
-                payload = self._payload_of(received)
-                if payload is None:
+                msg = self._message_of(received)
+                if msg is None:
                     continue
-                try:
-                    msg = decode(payload)
-                except MessageError as exc:
+                if isinstance(msg, MessageError):
                     self.stats.bad_messages += 1
-                    self._warn_bad_message(received.key, exc)
+                    self._warn_bad_message(received.key, msg)
                     continue
                 key = (msg.run, msg.seq)
                 producer = self.keys.parse_data(received.key)[0]
