@@ -1,7 +1,9 @@
 """Zenoh plumbing in one place: session configs, key names, shutdown signals, shared-memory hygiene.
 
-Topology: the launcher opens a router-mode session (the hub); every operator opens a client session
-to it with multicast scouting off, so a worker on another host only needs the hub's endpoint.
+Topology: the launcher opens a router-mode session (the hub). A replica on the hub's host opens a
+peer session that connects to the hub and links directly to the other peers it learns of there
+(`direct_links`); a replica on another host opens a client session, so it only needs the hub's
+endpoint. Multicast scouting is off everywhere.
 
 Commands (`umad set`, `umad op`) are Zenoh queries: every replica or the launcher that receives one
 answers with what it did, so a command always hears back. They travel at a higher priority than
