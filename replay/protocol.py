@@ -15,6 +15,7 @@ from typing import Any
 
 import yaml
 
+from umad_common import recorded_path
 from umad_common.assignments import merge_params, parse_assignment
 from umad_common.operator import load_operator_class
 
@@ -24,7 +25,7 @@ LABEL_RESIZE = "nearest"  # labels are resized to the score maps' size, never th
 def model_record(weights: Path) -> dict[str, Any]:
     """A model file and what its JSON record (`<name>.json` beside it) says about its training:
     the data folder, how many drives and frames, epochs, seconds, and the network widths."""
-    record: dict[str, Any] = {"file": str(weights)}
+    record: dict[str, Any] = {"file": recorded_path(weights)}
     info_path = weights.with_suffix(".json")
     try:
         info = json.loads(info_path.read_text())
@@ -89,7 +90,7 @@ def run_protocol(metadata: dict[str, str], map_notes: dict[str, dict[str, Any]])
         if kind == "segmenter":
             protocol.setdefault("segmenters", {})[op_id] = segmenter_record(params, resolve)
         elif kind == "replayer":
-            protocol["data"] = str(resolve(params["source"]))
+            protocol["data"] = recorded_path(resolve(params["source"]))
             protocol["every"] = params.get("every", 1) * params.get("score_every", 1)  # frames per scored frame
             protocol["world_model_every"] = params.get("every", 1)  # frames per frame the world model sees
         elif kind == "world_model":
@@ -109,7 +110,11 @@ def run_protocol(metadata: dict[str, str], map_notes: dict[str, dict[str, Any]])
 def perceptual_network(params: dict[str, Any], resolve) -> dict[str, Any]:
     """The network behind Δ_PD as configured: ImageNet VGG16 when `vgg_weights` is set, else the feature net."""
     if params.get("vgg_weights"):
-        return {"network": "ImageNet VGG16", "file": str(resolve(params["vgg_weights"])), "trained_on": "ImageNet"}
+        return {
+            "network": "ImageNet VGG16",
+            "file": recorded_path(resolve(params["vgg_weights"])),
+            "trained_on": "ImageNet",
+        }
     return {"network": "label-free feature net", **model_record(resolve(params["features"]))}
 
 
@@ -121,7 +126,7 @@ def segmenter_record(params: dict[str, Any], resolve) -> dict[str, Any]:
         return {
             "method": method,
             "network": f"SAM {options.get('model', 'vit_b')}",
-            "file": str(resolve(options["checkpoint"])),
+            "file": recorded_path(resolve(options["checkpoint"])),
         }
     if method == "kmeans" and options.get("features") == "feature_net":
         return {

@@ -16,7 +16,7 @@ import logging
 from collections.abc import Iterator
 from pathlib import Path
 
-from umad_common import ASSETS
+from umad_common import ASSETS, recorded_path
 
 log = logging.getLogger("umad.calibrate")
 
@@ -153,18 +153,18 @@ def run(args: argparse.Namespace) -> int:
     if frames == 0:
         raise SystemExit(f"{args.data}: the calibration drives {[d.name for d in drives]} hold no frames")
     info = {
-        "data": str(args.data),
+        "data": recorded_path(args.data),
         "drives": [d.name for d in drives],
         "drives_chosen": why,
         "frames": frames,
         "stride": stride,
         "horizon": args.horizon,
         "image_size": list(target.shape[:2]),
-        "world_model": str(weights),
+        "world_model": recorded_path(weights),
         "world_model_sha256": sha256(weights),
-        "features": str(features) if features else None,
+        "features": recorded_path(features) if features else None,
         "features_sha256": sha256(features) if features else None,
-        "vgg_weights": str(args.vgg_weights) if args.vgg_weights else None,
+        "vgg_weights": recorded_path(args.vgg_weights) if args.vgg_weights else None,
         "labels_read": False,
     }
     calibration = fitter.fit(info)

@@ -31,6 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import torch
 
+    from umad_common import recorded_path
     from umad_common.models.feature_net import save_feature_net
     from umad_common.training.train_features import FeatureTrainingConfig, load_normal_rgb, train_feature_net
 
@@ -43,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         epochs=args.epochs, seed=args.seed, max_frames=args.frames, batch_size=args.batch_size, holdout=args.holdout
     )
     frames, heldout = load_normal_rgb(args.data, cfg)
-    model = train_feature_net(frames, cfg, data_name=str(args.data), heldout=heldout)
+    model = train_feature_net(frames, cfg, data_name=recorded_path(args.data), heldout=heldout)
     save_feature_net(model, args.out)
     log.info("wrote %s (+ %s), %s", args.out, args.out.with_suffix(".json").name, model.config.training)
     return 0
