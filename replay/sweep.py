@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from replay.frames import FrameRecord, LogStats, frames_from_log
 from replay.protocol import run_protocol
-from umad_common.mcap_log import read_metadata
+from umad_common.mcap_log import LogError, describe_loss, read_metadata, recording_outcome
 from umad_common.metrics.components import ComponentMetrics
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import MAX_CHUNK_ELEMENTS, fuse, only_the_best, paint_masks, refine, resize_nearest
@@ -413,14 +413,25 @@ def sweep_log(
     overlay_frames: int = 6,
     components: bool = True,
     progress: bool = True,
+    allow_incomplete: bool = False,
 ) -> SweepResult:
     """Compute every configuration's AP/FPR95/AUROC from one log (see the module docstring); with
-    `components`, a second read adds component metrics for the headline configurations."""
+    `components`, a second read adds component metrics for the headline configurations.
+
+    A log whose recorder says it lacks messages is refused (LogError naming the channels and
+    counts): its table would score other frames than the run's. `allow_incomplete` reports on it
+    all the same, the protocol line saying what each channel lacks."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: log file not found; expected an MCAP file written by the recorder")
     if lag < 0 or every < 1:
         raise ValueError(f"sweep: lag must be >= 0 and every >= 1, got lag={lag}, every={every}")
+    incomplete = describe_loss(recording_outcome(path))
+    if incomplete and not allow_incomplete:
+        raise LogError(
+            f"{path}: the recording is incomplete: {incomplete}. A table from it would score other frames "
+            "than the run did; pass --allow-incomplete to report on it anyway"
+        )
     start = time.perf_counter()
     stats = LogStats()
     sweep = Sweep(overlay_frames=overlay_frames, every=every)
@@ -428,6 +439,8 @@ def sweep_log(
         sweep.add(frame, stats.segmenters)
     result = sweep.result(stats)
     result.protocol = run_protocol(read_metadata(path), stats.map_notes)
+    if incomplete:
+        result.protocol["incomplete"] = incomplete
     if components:
         result.components = component_pass(path, result, lag, every, progress)
     result.seconds = time.perf_counter() - start

@@ -52,3 +52,14 @@ def test_bus_bench_measures_the_runtime_against_bare_zenoh_and_one_process(tmp_p
         bus["bus_window_8"]["fps"] / bus["bus_window_8_through_hub"]["fps"]
     )
     assert "| bus | bare_zenoh_window_8.fps |" in out.with_suffix(".md").read_text()
+
+
+@pytest.mark.slow
+def test_record_bench_runs_the_default_graph_with_and_without_a_recording(hub_endpoint):
+    from umad_common.benchmarks.record import bench_record
+
+    result = bench_record(frames=3, pairs=1, hub=hub_endpoint)
+    assert result["fps_plain"] > 0 and result["fps_recorded"] > 0
+    assert result["fps_ratio_recorded"] == pytest.approx(result["fps_recorded"] / result["fps_plain"])
+    assert result["complete"] and result["log_messages"] == 18 * 4  # 18 channels, 3 frames and the end marker
+    assert result["log_mib_per_frame"] > 0

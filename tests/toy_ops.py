@@ -66,6 +66,7 @@ class JoinSink(Operator):
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
         log: str = ""
+        silent: bool = False  # publish nothing: an operator that declares more outputs than it returns
 
     def process(self, frame):
         a = frame.inputs["a"].arrays["x"]
@@ -73,7 +74,7 @@ class JoinSink(Operator):
         self._write(
             {"run": frame.run, "seq": frame.seq, "total": float(total[0]), "producers": sorted(frame.many["b"])}
         )
-        return {"total": Output({"x": total})}
+        return {} if self.params.silent else {"total": Output({"x": total})}
 
     def end_run(self, run):
         self._write({"run": run, "end": True})

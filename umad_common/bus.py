@@ -187,6 +187,9 @@ def close_session(session: zenoh.Session, timeout_s: float = 5.0) -> bool:
     return True
 
 
+RECORDER = "_recorder"  # the launcher's recorder, in acks and liveliness: it acks every frame it recorded
+
+
 class Keys:
     """Key names of one graph: `umad/<graph>/<operator>/<output>` and the underscore-prefixed service keys."""
 

@@ -1,7 +1,10 @@
 """The launcher: the hub, one process per operator replica, restarts, recording, clean shutdown.
 
 The graph is done when every source process has exited 0 (its stream is fully acked); the other
-processes are then stopped with SIGTERM. Ctrl-C does the same at any time. A process that crashes
+processes are then stopped with SIGTERM. Ctrl-C or SIGTERM stops the graph at any time within
+`STOP_AFTER_SIGNAL_S`, the log closed and readable; a second one kills what is left at once. A
+recorded run whose log lacks something (`recording.py`) exits with EXIT_INCOMPLETE and a line
+naming the channels and counts. A process that crashes
 is restarted with exponential backoff up to `max_restarts` times; after that, or when it exits with
 the runtime's configuration-error code, the whole graph stops and the launcher exits non-zero.
 
@@ -30,13 +33,16 @@ import zenoh
 
 from umad_common.bus import Keys, answer, cleanup_stale_shm, close_session, open_client
 from umad_common.graph import Graph, GraphError, OperatorSpec, load_graph
-from umad_common.mcap_log import McapRecorder
-from umad_common.payload_ring import SWEPT_BY_LAUNCHER, PayloadReader, fetch, remove_stale_rings
+from umad_common.mcap_log import describe_loss
+from umad_common.payload_ring import SWEPT_BY_LAUNCHER, remove_stale_rings
+from umad_common.recording import EXIT_INCOMPLETE, Recording
 from umad_common.runtime import EXIT_CONFIG
 
 log = logging.getLogger("umad.launch")
-STOP_GRACE_S = 10.0
-RECORDER_IDLE_S = 1.0
+STOP_GRACE_S = 10.0  # a graph that finished: its idle replicas get this long to exit on SIGTERM
+STOP_AFTER_SIGNAL_S = 4.0  # Ctrl-C / SIGTERM: replicas killed, log closed and hub gone within this
+RECORDER_CLOSE_S = 1.0  # after a signal: what the recorder received by then is written, the rest is lost
+RECORDER_DRAIN_S = 30.0  # a finished graph: the recorder writes what is still queued (acked frames: little)
 RING_GRACE_S = 30.0  # a replica's payload ring outlives it this long, for the recorder
 HUB_CONNECT_TIMEOUT_S = 60.0
 PROGRESS_INTERVAL_S = 15.0
@@ -117,10 +123,9 @@ class Launcher:
         self._print_lock = threading.Lock()
         self.sets = sets or []
         self.keys = Keys(graph.name)
-        self.recorder: McapRecorder | None = None
-        self.payloads = PayloadReader()  # the recorder's: it records payloads, not ring references
+        self.recording: Recording | None = None
+        self._hurry = threading.Event()  # a second signal: kill, do not wait
         self._exited: dict[int, float] = {}  # pid -> when a replica exited, until its ring is swept
-        self._fetches: queue.Queue = queue.Queue()  # references to rings of other hosts, for the recorder
         self._control: queue.Queue = queue.Queue()
         sources = set(graph.sources())
         self.replicas: list[Replica] = []
@@ -259,32 +264,45 @@ class Launcher:
             self._spawn(hub, niceness=0)
         return True
 
-    def _stop_hub(self) -> None:
+    def _stop_hub(self, grace_s: float) -> None:
         if self.hub_replica is not None and self.hub_replica.proc is not None:
             self.hub_replica.proc.send_signal(signal.SIGTERM)
             try:
-                self.hub_replica.proc.wait(timeout=STOP_GRACE_S)
+                self.hub_replica.proc.wait(timeout=0 if self._hurry.is_set() else grace_s)
             except subprocess.TimeoutExpired:
                 self.hub_replica.proc.kill()
+                self.hub_replica.proc.wait()
         cleanup_stale_shm()
 
-    def _terminate_all(self) -> None:
-        for rep in self.replicas:
-            if rep.proc and rep.proc.poll() is None:
-                rep.proc.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + STOP_GRACE_S
+    def _signal_all(self, sig: signal.Signals) -> None:
+        """Send `sig` to every running replica: SIGTERM to the replica, SIGKILL to its process group."""
+        for rep in list(self.replicas):
+            if rep.proc is not None and rep.proc.poll() is None:
+                try:
+                    if sig == signal.SIGKILL:
+                        os.killpg(rep.proc.pid, signal.SIGKILL)
+                    else:
+                        rep.proc.send_signal(sig)
+                except ProcessLookupError:
+                    pass
+
+    def _wait_all(self, deadline: float) -> None:
+        """Wait for every replica until `deadline` (or a second signal), then kill what is left."""
         for rep in self.replicas:
             if rep.proc is None:
                 continue
-            try:
-                rep.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
+            while rep.proc.poll() is None and not self._hurry.is_set() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            if rep.proc.poll() is None:
                 self._say(rep.name, "did not stop after SIGTERM; killing")
-                os.killpg(rep.proc.pid, signal.SIGKILL)
+                try:
+                    os.killpg(rep.proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
                 rep.proc.wait()
         for rep in self.replicas:
             for reader in rep.readers:
-                reader.join(timeout=1.0)
+                reader.join(timeout=0.2 if self._stop.is_set() else 1.0)
 
     # -- the run ------------------------------------------------------------------------------------
 
@@ -292,7 +310,11 @@ class Launcher:
         """Run the graph until its sources finish, an operator fails for good, or SIGINT/SIGTERM."""
 
         def on_signal(signum, _frame):
-            log.info("stopping the graph (%s)", signal.Signals(signum).name)
+            if self._stop.is_set():  # the second one: nothing more is waited for
+                self._hurry.set()
+                self._signal_all(signal.SIGKILL)
+                return
+            log.info("stopping the graph (%s); again to kill it at once", signal.Signals(signum).name)
             self._stop.set()
 
         tls = self.graph.tls_config()
@@ -312,47 +334,58 @@ class Launcher:
         if hub is None:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
-            self._stop_hub()
+            self._stop_hub(grace_s=1.0)
             if self._stop.is_set():
                 return 130
             log.error("no hub answered at %s within %.0fs", self.hub, HUB_CONNECT_TIMEOUT_S)
             return 1
-        subscribers = []
+        declared = []
+        code = 1
         try:
             keys = self.keys
-            subscribers.append(hub.declare_subscriber(f"{keys.root}/_stats/**", self._on_stats))
-            subscribers.append(hub.declare_queryable(keys.control_all, self._on_command))
-            subscribers.append(hub.declare_queryable(keys.graph_info, self._on_graph_info))
+            declared.append(hub.declare_subscriber(f"{keys.root}/_stats/**", self._on_stats))
+            declared.append(hub.declare_queryable(keys.control_all, self._on_command))
+            declared.append(hub.declare_queryable(keys.graph_info, self._on_graph_info))
             if self.record:
-                recorder = self.recorder = McapRecorder(
-                    self.record,
-                    self.graph_file.read_text(),
-                    {"base_dir": str(self.graph.base_dir), "sets": json.dumps(self.sets)},
-                )
-                subscribers.append(hub.declare_subscriber(f"{keys.root}/**", lambda s: self._on_record(recorder, s)))
-                threading.Thread(target=self._fetch_for_record, args=(hub, recorder), daemon=True).start()
+                metadata = {"graph": self.graph_file.read_text(), "base_dir": str(self.graph.base_dir)}
+                self.recording = Recording(hub, self.graph, self.record, {**metadata, "sets": json.dumps(self.sets)})
             for rep in self.replicas:
                 self._spawn(rep)
             code = self._supervise()
-            if self.recorder is not None:
-                self._fetches.join()
-                while time.monotonic() - self.recorder.last_write < RECORDER_IDLE_S:
-                    time.sleep(0.1)
-            self._terminate_all()
-            return code
-        finally:
-            self._terminate_all()  # also when something above raised: no operator outlives the launcher
-            for sub in subscribers:
-                sub.undeclare()
-            if self.recorder is not None:
-                self.recorder.close()
-                log.info("recorded %d messages to %s", self.recorder.count, self.record)
-            hub.close()
-            self.payloads.close()
-            self._stop_hub()
+            if code == 0 and self.recording is not None and not self.recording.drain(RECORDER_DRAIN_S):
+                log.warning("the recorder did not catch up within %.0fs", RECORDER_DRAIN_S)
+        finally:  # also when something above raised: no operator outlives the launcher
+            code = self._shut_down(hub, declared, code)
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
             self._print_summary()
+        return code
+
+    def _shut_down(self, hub: zenoh.Session, declared: list, code: int) -> int:
+        """Stop the replicas, close the log, stop the hub. After a signal all of it takes at most
+        STOP_AFTER_SIGNAL_S at any load (replicas that do not exit in time are killed); a second
+        signal kills at once. Returns the exit code, EXIT_INCOMPLETE for a finished graph whose log
+        lacks something."""
+        signalled = self._stop.is_set()
+        started = time.monotonic()
+        deadline = started + (STOP_AFTER_SIGNAL_S - 1.0 if signalled else STOP_GRACE_S)
+        self._signal_all(signal.SIGTERM)
+        if self.recording is not None:
+            outcome = self.recording.close(RECORDER_CLOSE_S if signalled else RECORDER_DRAIN_S, stopped=signalled)
+            log.info("recorded %d messages to %s", self.recording.count, self.record)
+            loss = describe_loss(outcome)
+            if loss and signalled:
+                log.warning("the run was stopped; what was in flight is not in %s: %s", self.record, loss)
+            elif loss:
+                log.error("the recording %s is incomplete: %s", self.record, loss)
+                code = EXIT_INCOMPLETE if code == 0 else code
+        self._wait_all(deadline)
+        for item in declared:
+            item.undeclare()
+        hub.close()
+        self._stop_hub(grace_s=0.5 if signalled else STOP_GRACE_S)
+        log.info("graph stopped in %.1f s", time.monotonic() - started)
+        return code
 
     def _supervise(self) -> int:
         sources = [r for r in self.replicas if r.is_source]
@@ -390,7 +423,8 @@ class Launcher:
         recent = {pid for pid, when in self._exited.items() if now - when < RING_GRACE_S}
         if len(recent) < len(self._exited):
             remove_stale_rings(spare_pids=recent)
-            self.payloads.forget_gone()
+            if self.recording is not None:
+                self.recording.sweep_gone_rings()
             self._exited = {pid: self._exited[pid] for pid in recent}
 
     def _running(self) -> list[str]:
@@ -412,8 +446,8 @@ class Launcher:
         there. Commands for an operator are answered by its replicas."""
         key = str(query.key_expr)
         payload = query.payload.to_bytes() if query.payload else b""
-        if self.recorder is not None:
-            self.recorder.write(key, payload)
+        if self.recording is not None:
+            self.recording.write_command(key, payload)
         if key == self.keys.launcher:
             self._control.put((payload, query))
         else:
@@ -469,30 +503,6 @@ class Launcher:
             self.stats[f"{data['op']}.{data['replica']}"] = data
         except (ValueError, KeyError):
             pass
-
-    def _on_record(self, recorder: McapRecorder, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        parts = key.split("/")
-        if len(parts) > 2 and parts[2] in ("_stats", "_ack", "_live", "_left"):
-            return
-        raw = sample.payload.to_bytes()
-        payload = self.payloads.take(raw)
-        if payload is None:  # a publisher on another host: fetched off Zenoh's callback thread
-            self._fetches.put((key, raw))
-        else:
-            recorder.write(key, payload)
-
-    def _fetch_for_record(self, hub: zenoh.Session, recorder: McapRecorder) -> None:
-        while True:
-            key, reference = self._fetches.get()
-            payload = fetch(hub, self.keys.root, reference)
-            if payload is None:
-                log.warning(
-                    "a payload on %s could not be fetched for the recording; its publisher no longer has it", key
-                )
-            else:
-                recorder.write(key, payload)
-            self._fetches.task_done()
 
     def _print_summary(self) -> None:
         if not self.stats or self.quiet:

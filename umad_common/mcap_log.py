@@ -2,7 +2,9 @@
 
 Every bus message is stored as its exact payload bytes: one channel per Zenoh key,
 `message_encoding` "msgpack", `sequence` = the frame's seq, `publish_time` = the source stamp. The
-graph and the package version are stored as metadata `umad`. Foxglove views (`viz/...` channels,
+graph and the package version are stored as metadata `umad`; whether the recording is complete (the
+payloads it lost and the frames each channel lacks, see `umad_common/recording.py`) as metadata
+`umad_recording`, written when the log is closed. Foxglove views (`viz/...` channels,
 JSON schemas) may sit beside them; replay ignores those.
 """
 
@@ -17,11 +19,15 @@ from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
+from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from umad_common.messages import Message as BusMessage
 from umad_common.messages import MessageError, decode
+
+RECORDING_METADATA = "umad_recording"  # the recorder's account of what it could not record
 
 
 class LogError(ValueError):
@@ -62,7 +68,9 @@ class McapRecorder:
             self._viz_thread = threading.Thread(target=self._viz_worker, daemon=True)
             self._viz_thread.start()
 
-    def write(self, key: str, payload: bytes) -> None:
+    def write(self, key: str, payload: bytes) -> BusMessage | None:
+        """Store one payload as it is; returns the message it decodes to (None for a command or a
+        malformed payload, stored all the same)."""
         try:
             msg = decode(payload)
             seq, stamp = msg.seq, msg.stamp_ns
@@ -78,6 +86,7 @@ class McapRecorder:
             self._writer.add_message(channel, time.time_ns(), bytes(payload), stamp, seq)
             self.count += 1
             self.last_write = time.monotonic()
+        return msg
 
     def write_json(self, topic: str, schema_name: str, schema: dict, obj: dict, stamp_ns: int) -> None:
         """A Foxglove-viewable message: JSON with a JSON schema (e.g. foxglove.RawImage)."""
@@ -107,11 +116,22 @@ class McapRecorder:
                 obj = compressed_image(picture, msg.stamp_ns, f"{msg.run}#{msg.seq}")
                 self.write_json(topic, "foxglove.CompressedImage", COMPRESSED_IMAGE_SCHEMA, obj, msg.stamp_ns)
 
-    def close(self) -> None:
+    def close(
+        self, drop_views: bool = False, metadata_name: str | None = None, metadata: dict[str, str] | None = None
+    ) -> None:
+        """Finish the file (readable from here on), with a last metadata record if given;
+        `drop_views`: pictures not yet encoded are left out (a run stopped by a signal)."""
         if self._viz_queue is not None:
+            while drop_views:
+                try:
+                    self._viz_queue.get_nowait()
+                except queue.Empty:
+                    break
             self._viz_queue.put(None)
             self._viz_thread.join()
         with self._lock:
+            if metadata_name is not None:
+                self._writer.add_metadata(metadata_name, metadata or {})
             self._writer.finish()
             self._file.close()
 
@@ -165,13 +185,54 @@ def read_log(path: str | Path, allow_truncated: bool = False) -> Iterator[LogMes
             ) from None
 
 
-def read_metadata(path: str | Path) -> dict[str, str]:
-    """The `umad` metadata record (graph text, version), or {} if the log has none."""
+def read_metadata(path: str | Path, name: str = "umad") -> dict[str, str]:
+    """A metadata record of the log (`umad`: graph text, version; `umad_recording`: what the
+    recorder lost), or {} if the log has none. The summary's index finds it without reading the
+    messages; a log without one (truncated) is read from the start."""
     with open(path, "rb") as f:
         try:
+            reader = make_reader(f)
+            if reader.get_summary() is not None:
+                return next((dict(m.metadata) for m in reader.iter_metadata() if m.name == name), {})
+        except Exception:  # no summary (a truncated file): read the records in order
+            pass
+        if name == RECORDING_METADATA:  # written at the close, with the summary: an unclosed log has none
+            return {}
+        f.seek(0)
+        try:
             for record in StreamReader(f).records:
-                if isinstance(record, Metadata) and record.name == "umad":
+                if isinstance(record, Metadata) and record.name == name:
                     return dict(record.metadata)
         except Exception:  # a truncated file may still carry its metadata; a missing record means none
             pass
     return {}
+
+
+def recording_outcome(path: str | Path) -> dict | None:
+    """What the recorder could not record: `{"lost": {channel: payloads}, "lacking": {channel:
+    frames}, "stopped": bool}`; None for a log that does not say (closed by an older recorder, or
+    not at all)."""
+    record = read_metadata(path, RECORDING_METADATA)
+    if not record:
+        return None
+    return {
+        "lost": json.loads(record.get("lost") or "{}"),
+        "lacking": json.loads(record.get("lacking") or "{}"),
+        "stopped": json.loads(record.get("stopped") or "false"),
+    }
+
+
+def describe_loss(outcome: dict | None) -> str:
+    """`lost 16 payloads (replayer/camera 8, ...); frames lacking: replayer/camera 16, ...`, or ''
+    for a complete recording (or one that does not say)."""
+    if not outcome:
+        return ""
+    short = lambda key: "/".join(key.split("/")[2:]) or key  # noqa: E731  umad/<graph>/op/out -> op/out
+    parts = []
+    if outcome.get("lost"):
+        lost = outcome["lost"]
+        detail = ", ".join(f"{short(k)} {n}" for k, n in sorted(lost.items()))
+        parts.append(f"lost {sum(lost.values())} payloads ({detail})")
+    if outcome.get("lacking"):
+        parts.append("frames lacking: " + ", ".join(f"{short(k)} {n}" for k, n in sorted(outcome["lacking"].items())))
+    return "; ".join(parts)

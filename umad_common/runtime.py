@@ -237,7 +237,8 @@ class OperatorRuntime:
                 expected[port.name] = {
                     op
                     for op in self.members.ops()
-                    if any(self._produces(op, src) for src in self.spec.sources_of(port.name))
+                    if not op.startswith("_")  # the recorder's token: a consumer, never a producer
+                    and any(self._produces(op, src) for src in self.spec.sources_of(port.name))
                 }
         return expected
 

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 import msgpack
 
+from umad_common.bus import RECORDER
 from umad_common.delivery import LatencyWindow
 from umad_common.operator import Source, SourceFrame
 from umad_common.pacing import SourceParams
@@ -26,6 +27,8 @@ class SourceDriver:
     """Paces a Source: window of un-acked frames, retransmission on timeout, end-of-run markers.
 
     `lossless` pacing keeps at most `window` frames un-acked and re-sends a frame not acked in time.
+    A frame is acked when every sink acked it, and the launcher's recorder too while one is live: a
+    recorded run goes no faster than its log is written, so the log lacks nothing.
     `realtime` pacing publishes at `rate_hz` whatever the acks say and never re-sends (a late frame
     of a live sensor is worthless), yet it still collects acks: a run's end-of-run marker goes out
     only once its frames are acked or have timed out, so no sink closes a run before its last frame.
@@ -154,9 +157,10 @@ class SourceDriver:
             except Exception:
                 rt.stats.bad_messages += 1
             else:
-                if key in self.inflight and op in self.sinks:
+                ackers = self._ackers()
+                if key in self.inflight and op in ackers:
                     self.acks[key].add(op)
-                    if self.sinks <= self.acks[key]:
+                    if ackers <= self.acks[key]:
                         first_sent = self.inflight.pop(key)[1]
                         self.acks.pop(key)
                         if key not in self.markers:
@@ -183,6 +187,10 @@ class SourceDriver:
                 rt.stats.retransmits += 1
                 rt.publish(payloads, count=False)
                 self.inflight[key] = (payloads, first, now)
+
+    def _ackers(self) -> set[str]:
+        """Who must ack a frame: every sink, and the recorder while it is live."""
+        return self.sinks | {RECORDER} if self.rt.members.replicas(RECORDER) else self.sinks
 
     def _resend(self, request: dict) -> None:
         """Publish frames [from, to) of a run again, byte for byte, for a restarted ordered operator."""

@@ -9,15 +9,16 @@ from pathlib import Path
 import yaml
 
 
-def run_bench_graph(graph_data: dict, timeout_note: str = "") -> dict:
-    """Launch `graph_data` quietly; returns the source's frames/s and send-to-ack latency."""
+def run_bench_graph(graph_data: dict, timeout_note: str = "", record: Path | None = None) -> dict:
+    """Launch `graph_data` quietly (recorded to `record` if given); returns the source's frames/s
+    and send-to-ack latency."""
     from umad_common.graph import load_graph
     from umad_common.launcher import Launcher
 
     path = Path(tempfile.mkdtemp(prefix="umad-bench-")) / "graph.yaml"
     path.write_text(yaml.safe_dump(graph_data, sort_keys=False))
     graph = load_graph(path)
-    launcher = Launcher(graph, path, quiet=True)
+    launcher = Launcher(graph, path, record=record, quiet=True)
     start = time.perf_counter()
     code = launcher.run()
     wall = time.perf_counter() - start

@@ -1,4 +1,4 @@
-"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|control|all] [--out FILE.json]`.
+"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|record|control|all] [--out FILE.json]`.
 
 Each bench measures both sides of its ratio in the same run on the same machine, so the ratio is
 meaningful where the absolute numbers are not. Results are printed as Markdown and, with --out,
@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-BENCHES = ("bus", "metrics", "differences", "predictors", "scaling", "segmenters", "pipeline", "control")
+BENCHES = ("bus", "metrics", "differences", "predictors", "scaling", "segmenters", "pipeline", "record", "control")
 
 
 def add_arguments(parser):
@@ -84,6 +84,10 @@ def _run_one(name: str, args) -> dict:
             max_frames=args.frames or 0,
             seed=args.seed,
         )
+    if name == "record":
+        from umad_common.benchmarks.record import bench_record
+
+        return bench_record(frames=args.frames or 30, hub=args.hub)
     if name == "control":
         from umad_common.benchmarks.control import bench_control
 

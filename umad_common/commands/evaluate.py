@@ -84,6 +84,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--hub", default=None, help="hub endpoint (default: the graph's)")
     parser.add_argument(
+        "--allow-incomplete",
+        action="store_true",
+        help="report even if the recorded run lost messages (refused otherwise); the protocol line says what "
+        "each channel lacks",
+    )
+    parser.add_argument(
         "--set", action="append", default=[], metavar="OP.PARAM=VALUE", help="any other parameter override"
     )
 
@@ -92,6 +98,7 @@ def run(args: argparse.Namespace) -> int:
     from replay.sweep import sweep_log
     from umad_common.commands.common import load_graph_or_exit
     from umad_common.launcher import Launcher
+    from umad_common.recording import EXIT_INCOMPLETE
     from umad_common.viz.report import write_report
 
     started = time.perf_counter()
@@ -123,10 +130,17 @@ def run(args: argparse.Namespace) -> int:
     record = out / "run.mcap"
     print(f"evaluating {source} -> {out}", flush=True)
     code = Launcher(graph, graph_file, args.set, record, hub=args.hub).run()
-    if code != 0:
+    if code == EXIT_INCOMPLETE and not args.allow_incomplete:
+        print(
+            f"the recorded run {record} lacks messages (see above): no table from it; rerun, or pass "
+            "--allow-incomplete and run `umad sweep --allow-incomplete` on it",
+            file=sys.stderr,
+        )
+        return code
+    if code not in (0, EXIT_INCOMPLETE):
         print(f"the graph failed (exit {code}); the log so far is {record}", file=sys.stderr)
         return code
-    result = sweep_log(record)
+    result = sweep_log(record, allow_incomplete=args.allow_incomplete)
     index = write_report(result, out, record, layout=layout)
     print(f"\n{(out / 'table.md').read_text()}")
     print(f"UMAD evaluation done in {time.perf_counter() - started:.0f} s; report: {index} (and {out / 'index.html'})")

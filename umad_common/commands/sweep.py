@@ -33,6 +33,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="table.md: one line per configuration (long) or the paper's layout (a line per weight row)",
     )
     parser.add_argument(
+        "--allow-incomplete",
+        action="store_true",
+        help="report on a log whose recorder lost messages (refused otherwise); the protocol line says what "
+        "each channel lacks",
+    )
+    parser.add_argument(
         "--overlays",
         type=int,
         default=6,
@@ -47,7 +53,12 @@ def run(args: argparse.Namespace) -> int:
     if args.every < 1 or args.lag < 0 or args.overlays < 0:
         raise SystemExit("--every must be >= 1, --lag and --overlays >= 0")
     result = sweep_log(
-        args.log, lag=args.lag, every=args.every, overlay_frames=args.overlays, components=not args.no_components
+        args.log,
+        lag=args.lag,
+        every=args.every,
+        overlay_frames=args.overlays,
+        components=not args.no_components,
+        allow_incomplete=args.allow_incomplete,
     )
     if result.stats.truncated:
         log.warning("%s", result.stats.truncated)

@@ -116,6 +116,8 @@ def protocol_line(protocol: dict[str, Any]) -> str:
     segmenters = protocol.get("segmenters", {}).values()
     if segmenters:
         parts.append("masks: " + ", ".join(describe_model(s) if "file" in s else s["method"] for s in segmenters))
+    if protocol.get("incomplete"):  # reported with --allow-incomplete only
+        parts.append(f"INCOMPLETE LOG, {protocol['incomplete']}")
     return "; ".join(parts) + "."
 
 
