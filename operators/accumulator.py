@@ -19,8 +19,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from umad_common.dataflow.operator import Frame, Input, Operator, Output
 from umad_common.metrics.pixel import PixelMetrics
-from umad_common.operator import Frame, Input, Operator, Output
 from umad_common.refine import resize_nearest
 
 REPORTED = ("AP", "FPR95", "AUROC", "n_anomaly", "n_normal", "n_ignored")

@@ -16,6 +16,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from umad_common.dataflow.operator import Context, Frame, Input, Operator, Output
 from umad_common.differences import (
     DifferenceMetric,
     MetricOptions,
@@ -24,7 +25,6 @@ from umad_common.differences import (
     load_calibration,
     minmax,
 )
-from umad_common.operator import Context, Frame, Input, Operator, Output
 
 FRAME_ARRAYS = ("target", "recon", "preds", "pred_valid")
 

@@ -12,10 +12,10 @@ from collections.abc import Iterator
 import numpy as np
 from pydantic import BaseModel, Field
 
+from umad_common.dataflow.log_source import recorded_frame, recorded_frames
+from umad_common.dataflow.operator import Context, Output, Source, SourceFrame
+from umad_common.dataflow.pacing import SourceParams
 from umad_common.datasets.anovox import AnoVoxFrame, AnoVoxScenario, DatasetError, find_scenarios
-from umad_common.log_source import recorded_frame, recorded_frames
-from umad_common.operator import Context, Output, Source, SourceFrame
-from umad_common.pacing import SourceParams
 
 ROUTE_SHAPE = (192, 192)
 RECORDING_PERIOD_NS = 100_000_000  # AnoVox and the synthetic world record at 10 Hz

@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from replay.frames import FrameRecord, LogStats, frames_from_log
 from replay.protocol import run_protocol
-from umad_common.mcap_log import LogError, describe_loss, read_metadata, recording_outcome
+from umad_common.dataflow.mcap_log import LogError, describe_loss, read_metadata, recording_outcome
 from umad_common.metrics.components import ComponentMetrics
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import MAX_CHUNK_ELEMENTS, fuse, only_the_best, paint_masks, refine, resize_nearest

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from operators.accumulator import Accumulator
-from umad_common.messages import Message
+from umad_common.dataflow.messages import Message
+from umad_common.dataflow.operator import Context, Frame
 from umad_common.metrics.pixel import PixelMetrics
-from umad_common.operator import Context, Frame
 from umad_common.refine import resize_nearest
 
 

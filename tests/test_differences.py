@@ -15,6 +15,8 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
+from umad_common.dataflow.messages import Message
+from umad_common.dataflow.operator import Context, Frame
 from umad_common.differences import (
     AbsDifference,
     CalibrationError,
@@ -30,11 +32,9 @@ from umad_common.differences import (
     minmax,
 )
 from umad_common.differences.perceptual import PerceptualDifference
-from umad_common.messages import Message
 from umad_common.models.feature_net import FeatureNet, load_feature_net, save_feature_net
 from umad_common.models.vgg16 import load_vgg16_features
 from umad_common.models.weights import WeightsError
-from umad_common.operator import Context, Frame
 
 torch.set_num_threads(1)
 

@@ -17,9 +17,9 @@ import yaml
 import zenoh
 
 from tests.conftest import REPO, DrainedUmad
-from umad_common.bus import Keys, open_client
-from umad_common.graph import load_graph
-from umad_common.messages import Message, encode
+from umad_common.dataflow.bus import Keys, open_client
+from umad_common.dataflow.graph import load_graph
+from umad_common.dataflow.messages import Message, encode
 
 pytestmark = pytest.mark.slow
 N_PAYLOADS = 10_000

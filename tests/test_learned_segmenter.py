@@ -17,8 +17,8 @@ import torch
 from operators.segmenter import Segmenter
 from tests.test_segmenter import H, W, scene_frame
 from tests.test_world_model import write_drive
+from umad_common.dataflow.operator import Context
 from umad_common.models.weights import WeightsError
-from umad_common.operator import Context
 from umad_common.segmentation import SEGMENTERS, build_segmenter
 from umad_common.segmentation.learned import merge_small_regions
 
@@ -117,7 +117,7 @@ def test_geometry_learned_is_geometry_with_the_learned_rest(trained):
     problems = Segmenter.wiring_problems(Segmenter.Params(method="geometry_learned"), {"frame"})
     assert problems == ["method 'geometry_learned' needs input 'lidar' (e.g. replayer/lidar), which is not wired"]
     method = build_segmenter("geometry_learned", {"rest_options": {"weights": str(out)}, "no_lidar": "rest"}, Context())
-    from umad_common.messages import Message
+    from umad_common.dataflow.messages import Message
 
     frame = scene_frame(0, with_truth=False)
     frame.inputs["lidar"] = Message("drive", 0, arrays={"points": np.zeros((0, 4), np.float32)})
@@ -150,9 +150,9 @@ def test_readme_recipe_rebuilds_the_shipped_segment_net():
 def test_switching_to_a_method_whose_input_is_not_wired_is_refused_with_the_reason():
     import zenoh
 
-    from umad_common.bus import zenoh_config
-    from umad_common.graph import validate_graph
-    from umad_common.runtime import OperatorRuntime
+    from umad_common.dataflow.bus import zenoh_config
+    from umad_common.dataflow.graph import validate_graph
+    from umad_common.dataflow.runtime import OperatorRuntime
 
     graph = {
         "name": "switch",

@@ -17,10 +17,10 @@ import yaml
 from tests.conftest import REPO, run_umad, start_umad, umad_env
 from tests.test_distributed import frames_done_by
 from tests.test_runtime_e2e import assert_exactly_once, sink_lines, toy_graph
-from umad_common.bus import open_client, open_hub
-from umad_common.mcap_log import read_log
-from umad_common.messages import Message, MessageError, decode, encode
-from umad_common.payload_ring import (
+from umad_common.dataflow.bus import open_client, open_hub
+from umad_common.dataflow.mcap_log import read_log
+from umad_common.dataflow.messages import Message, MessageError, decode, encode
+from umad_common.dataflow.payload_ring import (
     INLINE_BELOW,
     RING_DIR,
     PayloadReader,
@@ -180,8 +180,8 @@ def test_a_ring_left_to_the_launcher_still_gives_its_payloads_after_its_publishe
 
 
 def test_the_launcher_sweeps_a_replicas_ring_only_after_a_grace(tmp_path, hub_endpoint, monkeypatch):
-    from umad_common import launcher
-    from umad_common.graph import load_graph
+    from umad_common.dataflow import launcher
+    from umad_common.dataflow.graph import load_graph
 
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     pid = int(dead.stdout)

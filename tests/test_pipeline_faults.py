@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from tests.conftest import REPO, DrainedUmad, free_port
-from umad_common.bus import open_client
+from umad_common.dataflow.bus import open_client
 
 pytestmark = pytest.mark.slow
 FRAMES = 16

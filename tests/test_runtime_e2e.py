@@ -16,9 +16,9 @@ import yaml
 import zenoh
 
 from tests.conftest import DrainedUmad, run_umad, start_umad
-from umad_common.bus import open_client
-from umad_common.mcap_log import LogError, read_log
-from umad_common.messages import decode
+from umad_common.dataflow.bus import open_client
+from umad_common.dataflow.mcap_log import LogError, read_log
+from umad_common.dataflow.messages import decode
 
 pytestmark = pytest.mark.slow
 
@@ -102,7 +102,7 @@ def test_toy_graph_delivers_every_frame_exactly_once(tmp_path, hub_endpoint):
 def test_a_graph_whose_hub_endpoint_is_taken_refuses_to_start(tmp_path, hub_endpoint):
     """Another hub on the endpoint (a graph that did not stop): our hub could not listen there and our
     replicas would join that graph's hub, mixing frames of two graphs. The launcher says so and stops."""
-    from umad_common.bus import open_hub
+    from umad_common.dataflow.bus import open_hub
 
     other = open_hub(hub_endpoint)
     try:
@@ -362,7 +362,7 @@ def test_hub_restart_is_survived_by_reconnecting_clients(tmp_path, hub_endpoint)
     hub_pid = None
     while hub_pid is None and time.monotonic() < deadline:
         out = subprocess.run(
-            ["pgrep", "-f", "--", f"umad_common.hub --listen {hub_endpoint}"], capture_output=True, text=True
+            ["pgrep", "-f", "--", f"umad_common.dataflow.hub --listen {hub_endpoint}"], capture_output=True, text=True
         )
         if out.stdout.strip() and (tmp_path / "sink.jsonl").exists() and len(sink_lines(tmp_path)) > 10:
             hub_pid = int(out.stdout.split()[0])

@@ -16,7 +16,7 @@ from replay.sweep import Config, MaskSet, paper_weight_rows, sweep_log, weight_r
 from umad_common.cli import build_parser
 from umad_common.cli import main as umad_main
 from umad_common.commands.evaluate import every_and_layout
-from umad_common.messages import Message, encode
+from umad_common.dataflow.messages import Message, encode
 from umad_common.metrics.components import component_metrics
 from umad_common.refine import refine
 from umad_common.viz.report import write_report

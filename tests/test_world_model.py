@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from operators.world_model import WorldModelPredictor
-from umad_common.messages import Message
+from umad_common.dataflow.messages import Message
+from umad_common.dataflow.operator import Frame
 from umad_common.models.weights import WeightsError
 from umad_common.models.world_model import (
     MotionWarp,
@@ -21,7 +22,6 @@ from umad_common.models.world_model import (
     load_world_model,
     save_world_model,
 )
-from umad_common.operator import Frame
 
 torch.set_num_threads(1)
 

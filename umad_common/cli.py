@@ -12,7 +12,7 @@ import logging
 import os
 import sys
 
-from umad_common.allocator import keep_freed_memory
+from umad_common.dataflow.allocator import keep_freed_memory
 
 STOPPED_BY_SIGNAL = 130  # a command stopped by Ctrl-C / SIGTERM returns this
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {

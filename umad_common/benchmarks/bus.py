@@ -29,13 +29,13 @@ import numpy as np
 import zenoh
 from pydantic import Field
 
-from umad_common.allocator import keep_freed_memory
 from umad_common.benchmarks.graphs import run_bench_graph
-from umad_common.bus import open_client, open_hub
-from umad_common.launcher import OPERATOR_NICENESS
-from umad_common.messages import Message, decode, encode
-from umad_common.operator import Frame, Input, Operator, Output, Source, SourceFrame
-from umad_common.pacing import SourceParams
+from umad_common.dataflow.allocator import keep_freed_memory
+from umad_common.dataflow.bus import open_client, open_hub
+from umad_common.dataflow.launcher import OPERATOR_NICENESS
+from umad_common.dataflow.messages import Message, decode, encode
+from umad_common.dataflow.operator import Frame, Input, Operator, Output, Source, SourceFrame
+from umad_common.dataflow.pacing import SourceParams
 
 
 class BlobSource(Source):

@@ -13,10 +13,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from umad_common import DEFAULT_GRAPH
-from umad_common.assignments import GraphError, parse_sets
+from umad_common.dataflow.assignments import GraphError, parse_sets
 
 if TYPE_CHECKING:
-    from umad_common.graph import Graph
+    from umad_common.dataflow.graph import Graph
 
 CONNECT_TIMEOUT_S = 10.0  # how long a command waits for the hub's answer once connected
 ANSWER_TIMEOUT_S = 30.0  # a replica answers between two frames; only a hung one takes this long
@@ -34,7 +34,7 @@ def add_graph_argument(parser: argparse.ArgumentParser, positional: bool = False
 def load_graph_or_exit(path: str, sets: list[str] | None = None, local: bool = False) -> Graph | None:
     """The validated graph with `--set` overrides applied, or None after printing every problem.
     `local`: the whole graph runs here, so also check the interpreters and TLS files it names."""
-    from umad_common.graph import load_graph, missing_local_files
+    from umad_common.dataflow.graph import load_graph, missing_local_files
 
     try:
         graph = load_graph(path)
@@ -81,11 +81,11 @@ class RunningGraph:
 def connect_to_running_graph(graph_file: str | None, connect: str | None) -> RunningGraph | None:
     """The graph running on the hub (`connect`, else the graph file's hub, else the default one),
     or None after saying why not: no hub there, no graph on it, or several and none named."""
-    from umad_common.bus import DEFAULT_HUB, Keys, ask, open_client
+    from umad_common.dataflow.bus import DEFAULT_HUB, Keys, ask, open_client
 
     name, hub, tls = None, DEFAULT_HUB, None
     if graph_file:
-        from umad_common.graph import graph_address  # reads the file; imports no operator
+        from umad_common.dataflow.graph import graph_address  # reads the file; imports no operator
 
         name, hub, tls = graph_address(graph_file)
     hub = connect or hub

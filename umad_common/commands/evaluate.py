@@ -97,8 +97,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from replay.sweep import sweep_log
     from umad_common.commands.common import load_graph_or_exit
-    from umad_common.launcher import Launcher
-    from umad_common.recording import EXIT_INCOMPLETE
+    from umad_common.dataflow.launcher import Launcher
+    from umad_common.dataflow.recording import EXIT_INCOMPLETE
     from umad_common.viz.report import write_report
 
     started = time.perf_counter()

@@ -16,7 +16,7 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    from umad_common.launcher import Launcher
+    from umad_common.dataflow.launcher import Launcher
 
     graph = load_graph_or_exit(args.graph, args.set, local=True)
     if graph is None:

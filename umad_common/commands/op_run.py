@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import sys
 
-from umad_common.assignments import GraphError
 from umad_common.commands.common import add_connect_argument, add_graph_argument, load_graph_or_exit
+from umad_common.dataflow.assignments import GraphError
 
 
 def add_arguments(parser):
@@ -17,7 +17,7 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    from umad_common.runtime import run_operator
+    from umad_common.dataflow.runtime import run_operator
 
     graph = load_graph_or_exit(args.graph, args.set)
     if graph is None:

@@ -31,8 +31,8 @@ def add_arguments(parser):
 
 def run(args) -> int:
     from umad_common.commands.common import load_graph_or_exit
-    from umad_common.launcher import Launcher
-    from umad_common.mcap_log import LogError, read_log, read_metadata
+    from umad_common.dataflow.launcher import Launcher
+    from umad_common.dataflow.mcap_log import LogError, read_log, read_metadata
 
     try:
         count = sum(1 for _ in read_log(args.log, allow_truncated=args.allow_truncated))

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import sys
 
-from umad_common.assignments import GraphError, parse_sets
 from umad_common.commands.common import (
     ANSWER_TIMEOUT_S,
     add_running_graph_arguments,
     connect_to_running_graph,
     report,
 )
+from umad_common.dataflow.assignments import GraphError, parse_sets
 
 
 def add_arguments(parser):
@@ -24,7 +24,7 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    from umad_common.bus import Keys, ask
+    from umad_common.dataflow.bus import Keys, ask
 
     try:
         overrides = parse_sets(args.assignments)

@@ -11,6 +11,7 @@ where `MyDifference` subclasses `DifferenceMetric`.
 
 from __future__ import annotations
 
+from umad_common.dataflow.plugins import registered_class
 from umad_common.differences.metrics import (
     AbsDifference,
     DifferenceInputError,
@@ -29,7 +30,6 @@ from umad_common.differences.normalization import (
     load_calibration,
     minmax,
 )
-from umad_common.plugins import registered_class
 
 METRICS: dict[str, type[DifferenceMetric] | str] = {
     "abs": AbsDifference,

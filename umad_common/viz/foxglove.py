@@ -12,7 +12,7 @@ import base64
 import cv2
 import numpy as np
 
-from umad_common.messages import Message
+from umad_common.dataflow.messages import Message
 
 COMPRESSED_IMAGE_SCHEMA = {
     "title": "foxglove.CompressedImage",

@@ -11,13 +11,13 @@ from typing import TYPE_CHECKING
 
 import msgpack
 
-from umad_common.bus import RECORDER
-from umad_common.delivery import LatencyWindow
-from umad_common.operator import Source, SourceFrame
-from umad_common.pacing import SourceParams
+from umad_common.dataflow.bus import RECORDER
+from umad_common.dataflow.delivery import LatencyWindow
+from umad_common.dataflow.operator import Source, SourceFrame
+from umad_common.dataflow.pacing import SourceParams
 
 if TYPE_CHECKING:
-    from umad_common.runtime import OperatorRuntime
+    from umad_common.dataflow.runtime import OperatorRuntime
 
 LIVE_WAIT_S = 60.0
 ACK_WAIT_S = 0.05  # a full window's wait for acks (an ack ends it at once): re-sends and commands wait this long

@@ -1,7 +1,7 @@
 """What an operator module writes: its ports, its parameter schema and one per-frame function.
 
 Everything else (connecting to the hub, joining inputs by `(run, seq)`, ordering, acks, dedup,
-stats, shutdown) lives in `umad_common.runtime`. An operator is plain Python: construct it with its
+stats, shutdown) lives in `umad_common.dataflow.runtime`. An operator is plain Python: construct it with its
 parameters and call `process(frame)` in a unit test, no Zenoh needed.
 
     class Negate(Operator):
@@ -28,11 +28,10 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from umad_common.messages import Message
-from umad_common.pacing import SourceParams
-from umad_common.plugins import import_class
-
-PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # holds umad_common/ (and operators/, replay/)
+from umad_common import REPOSITORY
+from umad_common.dataflow.messages import Message
+from umad_common.dataflow.pacing import SourceParams
+from umad_common.dataflow.plugins import import_class
 
 
 class NoParams(BaseModel):
@@ -94,7 +93,7 @@ class Context:
         if p.is_absolute():
             return p
         local = self.base_dir / p
-        shipped = PACKAGE_ROOT / p
+        shipped = REPOSITORY / p
         return shipped if not local.exists() and shipped.exists() else local
 
 

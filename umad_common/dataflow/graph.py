@@ -25,10 +25,10 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from umad_common.assignments import GraphError, merge_params
-from umad_common.bus import DEFAULT_HUB, TlsConfig
-from umad_common.operator import Operator, Source, UnknownOperatorError, load_operator_class
-from umad_common.pacing import SourceParams
+from umad_common.dataflow.assignments import GraphError, merge_params
+from umad_common.dataflow.bus import DEFAULT_HUB, TlsConfig
+from umad_common.dataflow.operator import Operator, Source, UnknownOperatorError, load_operator_class
+from umad_common.dataflow.pacing import SourceParams
 
 
 class TlsSpec(BaseModel):
@@ -229,7 +229,7 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
             problems += [f"operator {op.id!r}: {p}" for p in cls.wiring_problems(params, set(op.inputs))]
         if issubclass(cls, Source) and not issubclass(cls.Params, SourceParams):
             problems.append(
-                f"operator {op.id!r}: a source's Params must extend umad_common.pacing.SourceParams (its pacing)"
+                f"operator {op.id!r}: a source's Params must extend umad_common.dataflow.pacing.SourceParams (its pacing)"
             )
         if cls.ordered and op.replicas > 1:
             problems.append(f"operator {op.id!r}: kind {cls.kind!r} processes frames in order and cannot have replicas")

@@ -31,12 +31,12 @@ from pathlib import Path
 
 import zenoh
 
-from umad_common.bus import Keys, answer, cleanup_stale_shm, close_session, open_client
-from umad_common.graph import Graph, GraphError, OperatorSpec, load_graph
-from umad_common.mcap_log import describe_loss
-from umad_common.payload_ring import SWEPT_BY_LAUNCHER, remove_stale_rings
-from umad_common.recording import EXIT_INCOMPLETE, Recording
-from umad_common.runtime import EXIT_CONFIG
+from umad_common.dataflow.bus import Keys, answer, cleanup_stale_shm, close_session, open_client
+from umad_common.dataflow.graph import Graph, GraphError, OperatorSpec, load_graph
+from umad_common.dataflow.mcap_log import describe_loss
+from umad_common.dataflow.payload_ring import SWEPT_BY_LAUNCHER, remove_stale_rings
+from umad_common.dataflow.recording import EXIT_INCOMPLETE, Recording
+from umad_common.dataflow.runtime import EXIT_CONFIG
 
 log = logging.getLogger("umad.launch")
 STOP_GRACE_S = 10.0  # a graph that finished: its idle replicas get this long to exit on SIGTERM
@@ -142,7 +142,7 @@ class Launcher:
                 self.replicas.append(Replica(spec.id, index, cmd, spec.id in sources))
 
     def _hub_command(self) -> list[str]:
-        cmd = [sys.executable, "-m", "umad_common.hub", "--listen", self.hub]
+        cmd = [sys.executable, "-m", "umad_common.dataflow.hub", "--listen", self.hub]
         tls = self.graph.tls_config()
         if tls is not None:
             for flag, value in (("--root-ca", tls.root_ca), ("--cert", tls.cert), ("--key", tls.key)):
@@ -158,7 +158,7 @@ class Launcher:
         cmd = [
             python,
             "-m",
-            "umad_common.runtime",
+            "umad_common.dataflow.runtime",
             "--graph",
             str(graph_file),
             "--op",

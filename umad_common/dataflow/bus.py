@@ -23,7 +23,7 @@ from pathlib import Path
 
 import zenoh
 
-from umad_common.payload_ring import remove_stale_rings
+from umad_common.dataflow.payload_ring import remove_stale_rings
 
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
 DIRECT_LINK_LISTEN = "tcp/127.0.0.1:0"  # a peer replica's own endpoint for its direct links (any free port)

@@ -44,23 +44,23 @@ import zenoh
 from pydantic import ValidationError
 from threadpoolctl import threadpool_limits
 
-from umad_common.allocator import keep_freed_memory
-from umad_common.assignments import GraphError, merge_params, parse_sets
-from umad_common.bus import Keys, ShutdownSignal, answer, close_session, open_client
-from umad_common.delivery import FrameJoiner, Membership, OutputCache, Stats
-from umad_common.graph import Graph, load_graph
-from umad_common.mcap_log import LogError
-from umad_common.messages import Message, MessageError, decode, encode
-from umad_common.operator import Context, Frame, Operator, Output, Source
-from umad_common.pacing import JoinParams
-from umad_common.payload_ring import (
+from umad_common.dataflow.allocator import keep_freed_memory
+from umad_common.dataflow.assignments import GraphError, merge_params, parse_sets
+from umad_common.dataflow.bus import Keys, ShutdownSignal, answer, close_session, open_client
+from umad_common.dataflow.delivery import FrameJoiner, Membership, OutputCache, Stats
+from umad_common.dataflow.graph import Graph, load_graph
+from umad_common.dataflow.mcap_log import LogError
+from umad_common.dataflow.messages import Message, MessageError, decode, encode
+from umad_common.dataflow.operator import Context, Frame, Operator, Output, Source
+from umad_common.dataflow.pacing import JoinParams
+from umad_common.dataflow.payload_ring import (
     SWEPT_BY_LAUNCHER,
     PayloadReader,
     PayloadRing,
     fetch,
     on_this_host,
 )
-from umad_common.source_driver import SourceDriver
+from umad_common.dataflow.source_driver import SourceDriver
 
 log = logging.getLogger("umad.runtime")
 
@@ -135,7 +135,7 @@ class OperatorRuntime:
         self.log = logging.getLogger(f"umad.{op_id}")
         context = Context(op_id, replica, graph.name, graph.base_dir, self.log)
         if replay_log and issubclass(self.cls, Source):
-            from umad_common.log_source import LoggedSource
+            from umad_common.dataflow.log_source import LoggedSource
 
             params = self.cls.validate_params(self.spec.params)
             self.operator: Operator = LoggedSource(replay_log, self.cls, params, context, allow_truncated)

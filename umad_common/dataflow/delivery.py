@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from umad_common.messages import Message
-from umad_common.operator import Frame
+from umad_common.dataflow.messages import Message
+from umad_common.dataflow.operator import Frame
 
 OUTPUT_CACHE_FRAMES = 64
 MAX_PENDING_FRAMES = 256

@@ -33,10 +33,10 @@ from pathlib import Path
 import msgpack
 import zenoh
 
-from umad_common.bus import RECORDER, Keys
-from umad_common.graph import Graph
-from umad_common.mcap_log import RECORDING_METADATA, McapRecorder
-from umad_common.payload_ring import PayloadReader, fetch
+from umad_common.dataflow.bus import RECORDER, Keys
+from umad_common.dataflow.graph import Graph
+from umad_common.dataflow.mcap_log import RECORDING_METADATA, McapRecorder
+from umad_common.dataflow.payload_ring import PayloadReader, fetch
 
 log = logging.getLogger("umad.record")
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from umad_common.bus import ShutdownSignal, TlsConfig, open_hub
+from umad_common.dataflow.bus import ShutdownSignal, TlsConfig, open_hub
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,7 +3,7 @@
 Every bus message is stored as its exact payload bytes: one channel per Zenoh key,
 `message_encoding` "msgpack", `sequence` = the frame's seq, `publish_time` = the source stamp. The
 graph and the package version are stored as metadata `umad`; whether the recording is complete (the
-payloads it lost and the frames each channel lacks, see `umad_common/recording.py`) as metadata
+payloads it lost and the frames each channel lacks, see `umad_common/dataflow/recording.py`) as metadata
 `umad_recording`, written when the log is closed. Foxglove views (`viz/...` channels,
 JSON schemas) may sit beside them; replay ignores those.
 """
@@ -24,8 +24,8 @@ from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from umad_common.messages import Message as BusMessage
-from umad_common.messages import MessageError, decode
+from umad_common.dataflow.messages import Message as BusMessage
+from umad_common.dataflow.messages import MessageError, decode
 
 RECORDING_METADATA = "umad_recording"  # the recorder's account of what it could not record
 
