@@ -19,7 +19,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from umad_common.dataflow.operator import Frame, Input, Operator, Output
+from umad_common.dataflow import Frame, Input, Operator, Output
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import resize_nearest
 

@@ -16,7 +16,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from umad_common.dataflow.operator import Context, Frame, Input, Operator, Output
+from umad_common.dataflow import Context, Frame, Input, Operator, Output
 from umad_common.differences import (
     DifferenceMetric,
     MetricOptions,

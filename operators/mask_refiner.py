@@ -12,7 +12,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from umad_common.dataflow.operator import Frame, Input, Operator, Output
+from umad_common.dataflow import Frame, Input, Operator, Output
 from umad_common.refine import refine, resize_nearest
 
 

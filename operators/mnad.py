@@ -11,7 +11,7 @@ from __future__ import annotations
 from pydantic import BaseModel, ConfigDict, Field
 
 from umad_common import ASSETS
-from umad_common.dataflow.operator import Frame, Input, Operator, Output
+from umad_common.dataflow import Frame, Input, Operator, Output
 
 SHIPPED_WEIGHTS = ASSETS / "mnad.safetensors"
 

@@ -12,9 +12,8 @@ from collections.abc import Iterator
 import numpy as np
 from pydantic import BaseModel, Field
 
+from umad_common.dataflow import Context, Output, Source, SourceFrame, SourceParams
 from umad_common.dataflow.log_source import recorded_frame, recorded_frames
-from umad_common.dataflow.operator import Context, Output, Source, SourceFrame
-from umad_common.dataflow.pacing import SourceParams
 from umad_common.datasets.anovox import AnoVoxFrame, AnoVoxScenario, DatasetError, find_scenarios
 
 ROUTE_SHAPE = (192, 192)

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from umad_common.dataflow.operator import Context, Frame, Input, Operator, Output
+from umad_common.dataflow import Context, Frame, Input, Operator, Output
 from umad_common.segmentation import SEGMENTERS, SegmenterMethod, UnknownSegmenterError, segmenter_class
 
 

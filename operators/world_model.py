@@ -25,8 +25,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from umad_common.dataflow import Frame, Input, Operator, Output
 from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import Frame, Input, Operator, Output
 
 if TYPE_CHECKING:
     import torch

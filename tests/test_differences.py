@@ -15,8 +15,8 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
+from umad_common.dataflow import Context, Frame
 from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import Context, Frame
 from umad_common.differences import (
     AbsDifference,
     CalibrationError,

@@ -17,7 +17,7 @@ import torch
 from operators.segmenter import Segmenter
 from tests.test_segmenter import H, W, scene_frame
 from tests.test_world_model import write_drive
-from umad_common.dataflow.operator import Context
+from umad_common.dataflow import Context
 from umad_common.models.weights import WeightsError
 from umad_common.segmentation import SEGMENTERS, build_segmenter
 from umad_common.segmentation.learned import merge_small_regions

@@ -10,8 +10,8 @@ from pydantic import ValidationError
 
 from operators.fusion import Fusion
 from operators.mask_refiner import MaskRefiner
+from umad_common.dataflow import Frame
 from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import Frame
 from umad_common.refine import fuse, mask_scores, refine, resize_nearest
 
 FUSED = np.array(

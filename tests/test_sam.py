@@ -26,7 +26,7 @@ END_TO_END = textwrap.dedent(
     from segment_anything import sam_model_registry
     from operators.segmenter import Segmenter
     from umad_common.dataflow.messages import Message
-    from umad_common.dataflow.operator import Frame
+    from umad_common.dataflow import Frame
 
     torch.set_num_threads(1)
     torch.manual_seed(0)

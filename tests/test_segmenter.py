@@ -14,8 +14,8 @@ import pytest
 from pydantic import ValidationError
 
 from operators.segmenter import Segmenter
+from umad_common.dataflow import Context, Frame
 from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import Context, Frame
 from umad_common.refine import resize_nearest
 from umad_common.segmentation import SEGMENTERS, connected_regions, labels_to_masks
 

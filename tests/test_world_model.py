@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from operators.world_model import WorldModelPredictor
+from umad_common.dataflow import Frame
 from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import Frame
 from umad_common.models.weights import WeightsError
 from umad_common.models.world_model import (
     MotionWarp,

@@ -10,8 +10,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from umad_common.dataflow.operator import Input, Operator, Output, Source, SourceFrame
-from umad_common.dataflow.pacing import SourceParams
+from umad_common.dataflow import Input, Operator, Output, Source, SourceFrame, SourceParams
 
 
 class CounterSource(Source):

@@ -30,12 +30,11 @@ import zenoh
 from pydantic import Field
 
 from umad_common.benchmarks.graphs import run_bench_graph
+from umad_common.dataflow import Frame, Input, Operator, Output, Source, SourceFrame, SourceParams
 from umad_common.dataflow.allocator import keep_freed_memory
 from umad_common.dataflow.bus import open_client, open_hub
 from umad_common.dataflow.launcher import OPERATOR_NICENESS
 from umad_common.dataflow.messages import Message, decode, encode
-from umad_common.dataflow.operator import Frame, Input, Operator, Output, Source, SourceFrame
-from umad_common.dataflow.pacing import SourceParams
 
 
 class BlobSource(Source):

@@ -40,10 +40,10 @@ import yaml
 
 from umad_common import DEFAULT_GRAPH
 from umad_common.benchmarks.graphs import run_bench_graph
+from umad_common.dataflow import Context, Frame, Operator, Source
 from umad_common.dataflow.allocator import keep_freed_memory
 from umad_common.dataflow.graph import Graph, validate_graph
 from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import Context, Frame, Operator, Source
 from umad_common.dataflow.runtime import one_blas_thread
 
 STAGE_FIELDS = ("cpu_ms", "runtime_cpu_ms", "wait_ms", "queue_ms", "transport_ms", "p50_ms")

@@ -12,8 +12,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from umad_common.dataflow import Frame
 from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import Frame
 
 WARMUP_FRAMES = 4
 

@@ -22,9 +22,8 @@ from pydantic import Field
 
 from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.benchmarks.pipeline import work_per_frame, work_with_every_core_busy
+from umad_common.dataflow import Output, Source, SourceFrame, SourceParams
 from umad_common.dataflow.graph import validate_graph
-from umad_common.dataflow.operator import Output, Source, SourceFrame
-from umad_common.dataflow.pacing import SourceParams
 
 
 class WorldModelFrames(Source):

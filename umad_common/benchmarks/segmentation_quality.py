@@ -29,8 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from umad_common.dataflow import Frame
 from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import Frame
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import fuse, refine, resize_nearest
 from umad_common.segmentation import connected_regions

@@ -83,8 +83,8 @@ def sensor_frames(scenario, limit: int) -> Iterator:
     open a label file) as the replayer sends them to the world model: camera, lidar, ego, route."""
     from operators.replayer import frame_outputs
     from operators.world_model import WorldModelPredictor
+    from umad_common.dataflow import Frame
     from umad_common.dataflow.messages import Message
-    from umad_common.dataflow.operator import Frame
 
     ports = [port.name for port in WorldModelPredictor.inputs]
     for seq in range(min(len(scenario), limit)):

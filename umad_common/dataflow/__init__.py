@@ -1,2 +1,60 @@
 """The dataflow engine: messages, the operator API, the bus and its payload rings, the runtime that
-runs one operator, delivery (joining, acks, stats), the graph, the launcher, the hub and the MCAP log."""
+runs one operator, delivery (joining, acks, stats), the graph, the launcher, the hub and the MCAP log.
+
+Operator authors import the operator API from here:
+
+    from umad_common.dataflow import Context, Frame, Input, Operator, Output, Source, SourceFrame
+    from umad_common.dataflow import JoinParams, SourceParams  # a joining operator's, a source's pacing
+
+The names load on first use, so `import umad_common.dataflow.bus` (what `umad set` and `umad op`
+need) does not import numpy or pydantic.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from umad_common.dataflow.operator import (
+        Context,
+        Frame,
+        Input,
+        NoParams,
+        Operator,
+        Output,
+        Source,
+        SourceFrame,
+    )
+    from umad_common.dataflow.pacing import JoinParams, SourceParams
+
+OPERATOR_API = {  # name -> the engine module that defines it
+    "Context": "operator",
+    "Frame": "operator",
+    "Input": "operator",
+    "NoParams": "operator",
+    "Operator": "operator",
+    "Output": "operator",
+    "Source": "operator",
+    "SourceFrame": "operator",
+    "JoinParams": "pacing",
+    "SourceParams": "pacing",
+}
+__all__ = [
+    "Context",
+    "Frame",
+    "Input",
+    "JoinParams",
+    "NoParams",
+    "Operator",
+    "Output",
+    "Source",
+    "SourceFrame",
+    "SourceParams",
+]
+
+
+def __getattr__(name: str) -> Any:
+    if name in OPERATOR_API:
+        return getattr(importlib.import_module(f"umad_common.dataflow.{OPERATOR_API[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

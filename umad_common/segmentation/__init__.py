@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from umad_common.dataflow.operator import Context
+from umad_common.dataflow import Context
 from umad_common.dataflow.plugins import registered_class
 from umad_common.segmentation.base import (
     SegmenterInputError,

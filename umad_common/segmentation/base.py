@@ -14,7 +14,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 from skimage.measure import label as label_regions
 
-from umad_common.dataflow.operator import Context, Frame
+from umad_common.dataflow import Context, Frame
 
 TUNED = "chosen on validation seed 2 (best refined AP) by `umad bench segmenters --tune`"  # provenance
 

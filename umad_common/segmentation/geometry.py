@@ -25,7 +25,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from scipy import ndimage
 
-from umad_common.dataflow.operator import Context, Frame
+from umad_common.dataflow import Context, Frame
 from umad_common.segmentation.base import (
     TUNED,
     SegmenterInputError,

@@ -14,7 +14,7 @@ from skimage.color import rgb2lab
 from skimage.segmentation import felzenszwalb, slic
 from threadpoolctl import threadpool_limits
 
-from umad_common.dataflow.operator import Context, Frame
+from umad_common.dataflow import Context, Frame
 from umad_common.segmentation.base import (
     TUNED,
     SegmenterMethod,

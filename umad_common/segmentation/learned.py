@@ -14,7 +14,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from umad_common.dataflow.operator import Context, Frame
+from umad_common.dataflow import Context, Frame
 from umad_common.segmentation.base import TUNED, SegmenterMethod, connected_regions, labels_to_masks
 from umad_common.segmentation.geometry import Geometry
 

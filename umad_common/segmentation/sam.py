@@ -11,7 +11,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from umad_common.dataflow.operator import Context, Frame
+from umad_common.dataflow import Context, Frame
 from umad_common.segmentation.base import SegmenterMethod
 
 

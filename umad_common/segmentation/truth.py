@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from umad_common.dataflow.operator import Frame
+from umad_common.dataflow import Frame
 from umad_common.refine import resize_nearest
 from umad_common.segmentation.base import SegmenterMethod, connected_regions, input_array, labels_to_masks
 
