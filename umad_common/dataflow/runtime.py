@@ -168,6 +168,11 @@ class OperatorRuntime:
         self.live = self._live_mode()
         self._params_meta = self.operator.params.model_dump(mode="json")  # recorded in every output
         self._route_cache: tuple[dict[str, set[str]], list[str]] | None = None  # expected producers, replicas
+        # the transform loop's state
+        self._cache = OutputCache()  # recent outputs, re-published for a duplicate input
+        self._ended: dict[str, list[tuple[str, bytes]]] = {}  # run -> its end-of-run payloads
+        self._next_seq: dict[str, int] = defaultdict(int)  # ordered operators: run -> next seq to process
+        self._in_order: dict[str, dict[int, Frame]] = defaultdict(dict)  # run -> joined frames waiting their turn
 
     # -- wiring -----------------------------------------------------------------------------------
 
@@ -441,7 +446,7 @@ class OperatorRuntime:
         token = self.session.liveliness().declare_token(self.keys.live(self.op_id, self.replica_id))
         try:
             if isinstance(self.operator, Source):
-                SourceDriver(self).run()
+                SourceDriver(self, self.operator, self.graph, self.max_frames).run()
                 return
             self.log.info("ready: %s -> %s", dict(self.spec.inputs), list(self.cls.outputs))
             self._transform_loop()
@@ -461,75 +466,8 @@ class OperatorRuntime:
             )
 
     def _transform_loop(self) -> None:
-        cache = OutputCache()
-        ended: dict[str, list[tuple[str, bytes]]] = {}
-        next_seq: dict[str, int] = defaultdict(int)
-        in_order: dict[str, dict[int, Frame]] = defaultdict(dict)
-
-        def finish(frame: Frame) -> None:
-            key = (frame.run, frame.seq)
-            self.stats.frames_in += 1
-            received = (*frame.inputs.values(), *(x for d in frame.many.values() for x in d.values()))
-            failed = [m for m in received if m.meta.get("error")]
-            skipped = any(m.meta.get("skip") for m in received)
-            if failed:
-                payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"error": failed[0].meta["error"]})
-            elif skipped and not self.cls.ordered:
-                payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
-            else:
-                start, cpu_start = time.perf_counter(), time.process_time()
-                try:
-                    outputs = self.operator.process(frame)
-                    self.stats.cpu_s += time.process_time() - cpu_start
-                    self.stats.computed += 1
-                    if skipped:  # an in-order operator saw the frame for its state; nobody scores it
-                        payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
-                    else:
-                        payloads = self.encode_outputs(
-                            frame.run, frame.seq, frame.stamp_ns, outputs, {"partial": True} if frame.partial else {}
-                        )
-                except Exception as exc:  # one bad frame must not stop the operator
-                    self.stats.errors += 1
-                    self.log.exception("frame %s failed: %s", frame.frame_id, exc)
-                    payloads = self.markers(
-                        frame.run, frame.seq, frame.stamp_ns, {"error": f"{self.op_id}: {type(exc).__name__}: {exc}"}
-                    )
-                self.stats.latency.add(time.perf_counter() - start)
-            cache.put(key, payloads)
-            self.publish(payloads)
-            if self.is_sink:
-                self._ack(frame.run, frame.seq)
-
-        def end_run(msg: Message) -> None:
-            run = msg.run
-            if run in ended:
-                if (run, msg.seq) not in cache:  # answer a re-sent marker at most once a second
-                    cache.put((run, msg.seq), ended[run])
-                republish = cache.due_for_republish((run, msg.seq))
-                if republish:
-                    self.publish(republish)
-                    if self.is_sink:
-                        self._ack(run, msg.seq)
-                return
-            meta = {"eos": True, "frames": msg.meta.get("frames", msg.seq)}
-            try:
-                outputs = self.operator.end_run(run)
-                payloads = self.encode_outputs(run, msg.seq, msg.stamp_ns, outputs, meta)
-                covered = {p for p, _ in payloads}
-                payloads += [(p, b) for p, b in self.markers(run, msg.seq, msg.stamp_ns, meta) if p not in covered]
-            except Exception as exc:
-                self.stats.errors += 1
-                self.log.exception("end of run %s failed: %s", run, exc)
-                payloads = self.markers(run, msg.seq, msg.stamp_ns, meta)
-            ended[run] = payloads
-            cache.put((run, msg.seq), payloads)
-            cache.last_republish[(run, msg.seq)] = time.monotonic()
-            next_seq.pop(run, None)
-            in_order.pop(run, None)
-            self.publish(payloads)
-            if self.is_sink:
-                self._ack(run, msg.seq)
-
+        """Until a stop: apply commands, take one message (or time out for a live join's deadline),
+        then process every frame the joiner has ready."""
         while not self.shutdown.is_set():
             live_changed = self.handle_service()
             self.publish_stats()
@@ -541,44 +479,127 @@ class OperatorRuntime:
             except queue.Empty:
                 received = None
             if received is not None:
-                self._count_arrival(received)
-                msg = self._message_of(received)
-                if msg is None:
+                if not self._take(received):
                     continue
-                if isinstance(msg, MessageError):
-                    self.stats.bad_messages += 1
-                    self._warn_bad_message(received.key, msg)
-                    continue
-                key = (msg.run, msg.seq)
-                producer = self.keys.parse_data(received.key)[0]
-                if msg.meta.get("eos"):
-                    end_run(msg)
-                    continue
-                if key in cache:
-                    self.stats.duplicates += 1
-                    republish = cache.due_for_republish(key)
-                    if republish:
-                        self.publish(republish)
-                        if self.is_sink:
-                            self._ack(*key)
-                    continue
-                if not self._owns(msg.seq):
-                    continue
-                self.joiner.add(received.port, producer, msg)
             elif not live_changed and not (deadline_s and self.joiner.pending):
                 continue
             for frame in self.joiner.pop_ready(self._routes()[0], deadline_s):
-                if not self.cls.ordered:
-                    finish(frame)
-                    continue
-                if frame.seq < next_seq[frame.run]:
-                    continue
-                in_order[frame.run][frame.seq] = frame
-                if next_seq[frame.run] == 0 and 0 not in in_order[frame.run]:
-                    self._request_rewind(frame.run, frame.seq)
-                while next_seq[frame.run] in in_order[frame.run]:
-                    finish(in_order[frame.run].pop(next_seq[frame.run]))
-                    next_seq[frame.run] += 1
+                if self.cls.ordered:
+                    self._finish_in_order(frame)
+                else:
+                    self._finish(frame)
+
+    def _take(self, received: Received) -> bool:
+        """Hand one input message to the joiner; False when it needs no join (unreadable, malformed,
+        an end-of-run marker, a duplicate answered from the cache, or another replica's frame)."""
+        self._count_arrival(received)
+        msg = self._message_of(received)
+        if msg is None:
+            return False
+        if isinstance(msg, MessageError):
+            self.stats.bad_messages += 1
+            self._warn_bad_message(received.key, msg)
+            return False
+        key = (msg.run, msg.seq)
+        producer = self.keys.parse_data(received.key)[0]
+        if msg.meta.get("eos"):
+            self._end_run(msg)
+            return False
+        if key in self._cache:
+            self.stats.duplicates += 1
+            republish = self._cache.due_for_republish(key)
+            if republish:
+                self._publish_and_ack(msg.run, msg.seq, republish)
+            return False
+        if not self._owns(msg.seq):
+            return False
+        self.joiner.add(received.port, producer, msg)
+        return True
+
+    def _finish_in_order(self, frame: Frame) -> None:
+        """An ordered operator's frame: held until every earlier frame of its run is finished; a run
+        that starts past seq 0 (this replica restarted) asks the sources for the frames before it."""
+        run = frame.run
+        if frame.seq < self._next_seq[run]:
+            return
+        waiting = self._in_order[run]
+        waiting[frame.seq] = frame
+        if self._next_seq[run] == 0 and 0 not in waiting:
+            self._request_rewind(run, frame.seq)
+        while self._next_seq[run] in waiting:
+            self._finish(waiting.pop(self._next_seq[run]))
+            self._next_seq[run] += 1
+
+    def _finish(self, frame: Frame) -> None:
+        """Process one joined frame (or pass on its error or skip marker), cache and publish the result."""
+        self.stats.frames_in += 1
+        payloads = self._payloads_for(frame)
+        self._cache.put((frame.run, frame.seq), payloads)
+        self._publish_and_ack(frame.run, frame.seq, payloads)
+
+    def _payloads_for(self, frame: Frame) -> list[tuple[str, bytes]]:
+        """A frame's outputs: an input's error passed on, a skip marker (an in-order operator still
+        processes the frame for its state), or what `process` returned, or the error it raised."""
+        received = (*frame.inputs.values(), *(x for d in frame.many.values() for x in d.values()))
+        failed = [m for m in received if m.meta.get("error")]
+        skipped = any(m.meta.get("skip") for m in received)
+        if failed:
+            return self.markers(frame.run, frame.seq, frame.stamp_ns, {"error": failed[0].meta["error"]})
+        if skipped and not self.cls.ordered:
+            return self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
+        start, cpu_start = time.perf_counter(), time.process_time()
+        try:
+            outputs = self.operator.process(frame)
+            self.stats.cpu_s += time.process_time() - cpu_start
+            self.stats.computed += 1
+            if skipped:  # an in-order operator saw the frame for its state; nobody scores it
+                payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
+            else:
+                payloads = self.encode_outputs(
+                    frame.run, frame.seq, frame.stamp_ns, outputs, {"partial": True} if frame.partial else {}
+                )
+        except Exception as exc:  # one bad frame must not stop the operator
+            self.stats.errors += 1
+            self.log.exception("frame %s failed: %s", frame.frame_id, exc)
+            payloads = self.markers(
+                frame.run, frame.seq, frame.stamp_ns, {"error": f"{self.op_id}: {type(exc).__name__}: {exc}"}
+            )
+        self.stats.latency.add(time.perf_counter() - start)
+        return payloads
+
+    def _end_run(self, msg: Message) -> None:
+        """A run's end-of-run marker: call the operator's `end_run` once and pass the marker on; a
+        re-sent marker is answered from what the first one published."""
+        run = msg.run
+        if run in self._ended:
+            if (run, msg.seq) not in self._cache:  # answer a re-sent marker at most once a second
+                self._cache.put((run, msg.seq), self._ended[run])
+            republish = self._cache.due_for_republish((run, msg.seq))
+            if republish:
+                self._publish_and_ack(run, msg.seq, republish)
+            return
+        meta = {"eos": True, "frames": msg.meta.get("frames", msg.seq)}
+        try:
+            outputs = self.operator.end_run(run)
+            payloads = self.encode_outputs(run, msg.seq, msg.stamp_ns, outputs, meta)
+            covered = {p for p, _ in payloads}
+            payloads += [(p, b) for p, b in self.markers(run, msg.seq, msg.stamp_ns, meta) if p not in covered]
+        except Exception as exc:
+            self.stats.errors += 1
+            self.log.exception("end of run %s failed: %s", run, exc)
+            payloads = self.markers(run, msg.seq, msg.stamp_ns, meta)
+        self._ended[run] = payloads
+        self._cache.put((run, msg.seq), payloads)
+        self._cache.last_republish[(run, msg.seq)] = time.monotonic()
+        self._next_seq.pop(run, None)
+        self._in_order.pop(run, None)
+        self._publish_and_ack(run, msg.seq, payloads)
+
+    def _publish_and_ack(self, run: str, seq: int, payloads: list[tuple[str, bytes]]) -> None:
+        """Publish a frame's (or an end-of-run marker's) payloads; a sink then acks it end to end."""
+        self.publish(payloads)
+        if self.is_sink:
+            self._ack(run, seq)
 
 
 def _one_line(exc: Exception) -> str:
