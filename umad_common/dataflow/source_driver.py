@@ -3,24 +3,52 @@ rate), re-sends what was not acked, answers a restarted ordered operator's rewin
 
 from __future__ import annotations
 
+import logging
 import queue
+import threading
 import time
 from collections import defaultdict
-from collections.abc import Iterator
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Iterator
+from typing import Any, Protocol
 
 import msgpack
 
-from umad_common.dataflow.bus import RECORDER
-from umad_common.dataflow.delivery import LatencyWindow
-from umad_common.dataflow.operator import Source, SourceFrame
+from umad_common.dataflow.bus import RECORDER, Keys
+from umad_common.dataflow.delivery import LatencyWindow, Membership, Stats
+from umad_common.dataflow.graph import Graph
+from umad_common.dataflow.operator import Output, Source, SourceFrame
 from umad_common.dataflow.pacing import SourceParams
-
-if TYPE_CHECKING:
-    from umad_common.dataflow.runtime import OperatorRuntime
 
 LIVE_WAIT_S = 60.0
 ACK_WAIT_S = 0.05  # a full window's wait for acks (an ack ends it at once): re-sends and commands wait this long
+
+
+class SourceHost(Protocol):
+    """What the source driver uses of the runtime that runs it (`OperatorRuntime`): its counters,
+    logger and stop signal, the live membership, the service loop and publishing."""
+
+    op_id: str
+    log: logging.Logger
+    stats: Stats
+    shutdown: threading.Event
+    members: Membership  # the live operators and their replicas
+    resend_requests: list[dict]  # frames a restarted ordered operator asked for; the driver takes them
+
+    def subscribe(self, key: str, callback: Callable[[Any], None]) -> None: ...
+
+    def handle_service(self) -> bool: ...
+
+    def publish_stats(self, force: bool = False) -> None: ...
+
+    def count_cpu_from_now(self) -> None: ...
+
+    def encode_outputs(
+        self, run: str, seq: int, stamp_ns: int, outputs: dict[str, Output], extra_meta: dict
+    ) -> list[tuple[str, bytes]]: ...
+
+    def markers(self, run: str, seq: int, stamp_ns: int, meta: dict) -> list[tuple[str, bytes]]: ...
+
+    def publish(self, payloads: list[tuple[str, bytes]], count: bool = True) -> None: ...
 
 
 class SourceDriver:
@@ -34,12 +62,14 @@ class SourceDriver:
     only once its frames are acked or have timed out, so no sink closes a run before its last frame.
     """
 
-    def __init__(self, rt: OperatorRuntime):
-        self.rt = rt
-        self.source: Source = rt.operator  # type: ignore[assignment]
-        if not isinstance(self.source.params, SourceParams):
-            raise TypeError(f"{rt.op_id}: a source's Params must extend SourceParams, got {type(self.source.params)}")
-        self.sinks = set(rt.graph.sinks())
+    def __init__(self, host: SourceHost, source: Source, graph: Graph, max_frames: int | None = None):
+        self.host = host
+        self.source = source
+        if not isinstance(source.params, SourceParams):
+            raise TypeError(f"{host.op_id}: a source's Params must extend SourceParams, got {type(source.params)}")
+        self.graph = graph
+        self.max_frames = max_frames
+        self.sinks = set(graph.sinks())
         self.acks: dict[tuple[str, int], set[str]] = defaultdict(set)
         self.ack_q: queue.Queue = queue.Queue()
         self.inflight: dict[tuple[str, int], tuple[list[tuple[str, bytes]], float, float]] = {}
@@ -52,19 +82,19 @@ class SourceDriver:
         return self.source.params  # type: ignore[return-value]
 
     def run(self) -> None:
-        rt = self.rt
-        rt.subscribe(rt.keys.ack, lambda s: self.ack_q.put(s.payload.to_bytes()))
+        host = self.host
+        host.subscribe(Keys(self.graph.name).ack, lambda s: self.ack_q.put(s.payload.to_bytes()))
         self._wait_for_graph()
-        rt.stats.total_frames = self.source.total_frames()
-        if rt.max_frames is not None and rt.stats.total_frames is not None:
-            rt.stats.total_frames = min(rt.stats.total_frames, rt.max_frames)
+        host.stats.total_frames = self.source.total_frames()
+        if self.max_frames is not None and host.stats.total_frames is not None:
+            host.stats.total_frames = min(host.stats.total_frames, self.max_frames)
         sent = 0
         current: str | None = None
         count = 0
         last_stamp = 0
         next_due = started = time.monotonic()
         frames = self.source.frames()
-        while not rt.shutdown.is_set() and (rt.max_frames is None or sent < rt.max_frames):
+        while not host.shutdown.is_set() and (self.max_frames is None or sent < self.max_frames):
             sf = self._next_frame(frames)
             if sf is None:
                 break
@@ -74,29 +104,29 @@ class SourceDriver:
             current = sf.run
             if self.pacing.pacing == "realtime":
                 next_due += 1.0 / self.pacing.rate_hz
-                while time.monotonic() < next_due and not rt.shutdown.is_set():
+                while time.monotonic() < next_due and not host.shutdown.is_set():
                     self._service(min(0.01, max(0.0, next_due - time.monotonic())))
             else:
-                while len(self.inflight) >= self.pacing.window and not rt.shutdown.is_set():
+                while len(self.inflight) >= self.pacing.window and not host.shutdown.is_set():
                     self._service(ACK_WAIT_S)
             self._send((sf.run, sf.seq), self._payloads(sf))
             sent += 1
             count += 1
             last_stamp = sf.stamp_ns
-        if current is not None and not rt.shutdown.is_set():
+        if current is not None and not host.shutdown.is_set():
             self._end_run(current, count, last_stamp)
-        rt.stats.busy_s = time.monotonic() - started
-        rt.publish_stats(force=True)
-        rt.log.info("source finished: %d frames sent, %d retransmits", sent, rt.stats.retransmits)
+        host.stats.busy_s = time.monotonic() - started
+        host.publish_stats(force=True)
+        host.log.info("source finished: %d frames sent, %d retransmits", sent, host.stats.retransmits)
 
     def _next_frame(self, frames: Iterator[SourceFrame]) -> SourceFrame | None:
         """The source's next frame, its reading counted as the source's own work (`cpu_ms`)."""
-        self.rt.count_cpu_from_now()
+        self.host.count_cpu_from_now()
         cpu_start = time.process_time()
         sf = next(frames, None)
         if sf is not None:
-            self.rt.stats.cpu_s += time.process_time() - cpu_start
-            self.rt.stats.computed += 1
+            self.host.stats.cpu_s += time.process_time() - cpu_start
+            self.host.stats.computed += 1
         return sf
 
     def _wait_for_graph(self) -> None:
@@ -105,11 +135,11 @@ class SourceDriver:
         number), so a frame sent after one replica saw a sibling's token but before that sibling
         subscribed would be nobody's until its re-send, `ack_timeout_s` later (a 16 s stall in
         `umad bench scaling` with two VGG16 replicas, when only one replica per operator was awaited)."""
-        wanted = {op.id: op.replicas for op in self.rt.graph.spec.operators}
+        wanted = {op.id: op.replicas for op in self.graph.spec.operators}
         deadline = time.monotonic() + LIVE_WAIT_S
-        while not self.rt.shutdown.is_set():
-            self.rt.handle_service()
-            live = self.rt.members.live
+        while not self.host.shutdown.is_set():
+            self.host.handle_service()
+            live = self.host.members.live
             missing = [
                 f"{op} ({len(live.get(op, ()))} of {n})" for op, n in wanted.items() if len(live.get(op, ())) < n
             ]
@@ -117,7 +147,7 @@ class SourceDriver:
                 time.sleep(0.2)  # let liveliness-triggered subscriptions settle at the hub
                 return
             if time.monotonic() > deadline:
-                self.rt.log.warning("starting although operators are not live: %s", sorted(missing))
+                self.host.log.warning("starting although operators are not live: %s", sorted(missing))
                 return
             time.sleep(0.05)
 
@@ -125,26 +155,26 @@ class SourceDriver:
         """A source frame's messages: recorded bytes as they are, its outputs encoded, or error
         markers for a frame that could not be read (logged with its id and counted in `errors`)."""
         if sf.error is not None:
-            self.rt.stats.errors += 1
-            self.rt.log.error("frame %s#%d cannot be read, sent on as an error: %s", sf.run, sf.seq, sf.error)
-            return self.rt.markers(sf.run, sf.seq, sf.stamp_ns, {"error": f"{self.rt.op_id}: {sf.error}"})
+            self.host.stats.errors += 1
+            self.host.log.error("frame %s#%d cannot be read, sent on as an error: %s", sf.run, sf.seq, sf.error)
+            return self.host.markers(sf.run, sf.seq, sf.stamp_ns, {"error": f"{self.host.op_id}: {sf.error}"})
         if sf.raw:
             return list(sf.raw.items())
-        return self.rt.encode_outputs(sf.run, sf.seq, sf.stamp_ns, sf.outputs, {})
+        return self.host.encode_outputs(sf.run, sf.seq, sf.stamp_ns, sf.outputs, {})
 
     def _send(self, key: tuple[str, int], payloads: list[tuple[str, bytes]]) -> None:
         now = time.monotonic()
-        self.rt.publish(payloads)
+        self.host.publish(payloads)
         if self.sinks:
             self.inflight[key] = (payloads, now, now)
 
     def _service(self, timeout: float) -> None:
         """Take acks, retransmit what timed out, answer resend requests, publish stats."""
-        rt = self.rt
-        rt.handle_service()
-        rt.publish_stats()
-        while rt.resend_requests:
-            self._resend(rt.resend_requests.pop(0))
+        host = self.host
+        host.handle_service()
+        host.publish_stats()
+        while host.resend_requests:
+            self._resend(host.resend_requests.pop(0))
         try:
             raw = self.ack_q.get(timeout=timeout)
         except queue.Empty:
@@ -155,7 +185,7 @@ class SourceDriver:
                 key = (str(ack["run"]), int(ack["seq"]))
                 op = str(ack["op"])
             except Exception:
-                rt.stats.bad_messages += 1
+                host.stats.bad_messages += 1
             else:
                 ackers = self._ackers()
                 if key in self.inflight and op in ackers:
@@ -164,9 +194,9 @@ class SourceDriver:
                         first_sent = self.inflight.pop(key)[1]
                         self.acks.pop(key)
                         if key not in self.markers:
-                            rt.stats.acked += 1
+                            host.stats.acked += 1
                         self.e2e.add(time.monotonic() - first_sent)
-                        rt.stats.latency.add(time.monotonic() - first_sent)
+                        host.stats.latency.add(time.monotonic() - first_sent)
             try:
                 raw = self.ack_q.get_nowait()
             except queue.Empty:
@@ -177,47 +207,47 @@ class SourceDriver:
         timeout_s = max(self.pacing.ack_timeout_s, 3 * (self.e2e.percentiles_ms()["p99_ms"] or 0) / 1e3)
         for key, (payloads, first, last) in list(self.inflight.items()):
             if now - last > timeout_s and self.pacing.pacing == "realtime":
-                rt.log.warning(
+                host.log.warning(
                     "frame %s#%d not acked after %.1fs: given up (realtime pacing)", key[0], key[1], now - last
                 )
                 self.inflight.pop(key)
                 self.acks.pop(key, None)
             elif now - last > timeout_s:
-                rt.log.warning("frame %s#%d not acked after %.1fs: re-sending", key[0], key[1], now - last)
-                rt.stats.retransmits += 1
-                rt.publish(payloads, count=False)
+                host.log.warning("frame %s#%d not acked after %.1fs: re-sending", key[0], key[1], now - last)
+                host.stats.retransmits += 1
+                host.publish(payloads, count=False)
                 self.inflight[key] = (payloads, first, now)
 
     def _ackers(self) -> set[str]:
         """Who must ack a frame: every sink, and the recorder while it is live."""
-        return self.sinks | {RECORDER} if self.rt.members.replicas(RECORDER) else self.sinks
+        return self.sinks | {RECORDER} if self.host.members.replicas(RECORDER) else self.sinks
 
     def _resend(self, request: dict) -> None:
         """Publish frames [from, to) of a run again, byte for byte, for a restarted ordered operator."""
-        rt = self.rt
+        host = self.host
         try:
             run, first, last = str(request["run"]), int(request["from"]), int(request["to"])
             for seq in range(first, last):
-                rt.publish(self._payloads(self.source.frame_or_error(run, seq)))
+                host.publish(self._payloads(self.source.frame_or_error(run, seq)))
         except NotImplementedError:
-            rt.log.error(
-                "%s cannot resend frames (no frame_at); %s must start its run over", rt.op_id, request.get("for")
+            host.log.error(
+                "%s cannot resend frames (no frame_at); %s must start its run over", host.op_id, request.get("for")
             )
             return
         except (KeyError, ValueError, TypeError, IndexError) as exc:
-            rt.stats.errors += 1
-            rt.log.error("bad resend request %r: %s", request, exc)
+            host.stats.errors += 1
+            host.log.error("bad resend request %r: %s", request, exc)
             return
-        rt.log.info("resent %s#%d..%d for %s", run, first, last - 1, request.get("for"))
+        host.log.info("resent %s#%d..%d for %s", run, first, last - 1, request.get("for"))
 
     def _end_run(self, run: str, frames: int, stamp_ns: int) -> None:
         """Drain the run's frames, then send its end-of-run marker until every sink acked it."""
-        rt = self.rt
-        while self.inflight and not rt.shutdown.is_set():
+        host = self.host
+        while self.inflight and not host.shutdown.is_set():
             self._service(ACK_WAIT_S)
-        markers = rt.markers(run, frames, stamp_ns, {"eos": True, "frames": frames})
+        markers = host.markers(run, frames, stamp_ns, {"eos": True, "frames": frames})
         self.markers.add((run, frames))
         self._send((run, frames), markers)
-        while self.inflight and not rt.shutdown.is_set():
+        while self.inflight and not host.shutdown.is_set():
             self._service(ACK_WAIT_S)
-        rt.log.info("run %s: %d frames", run, frames)
+        host.log.info("run %s: %d frames", run, frames)
