@@ -19,7 +19,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from umad_common.dataflow import Frame, Input, Operator, Output
+from umad_common.dataflow import Frame, Input, Operator, Output, input_array
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import resize_nearest
 
@@ -70,10 +70,7 @@ class Accumulator(Operator):
                 )
 
     def process(self, frame: Frame) -> dict[str, Output]:
-        truth = frame.inputs["truth"]
-        if "anomaly" not in truth.arrays:
-            raise ValueError(f"accumulator {frame.frame_id}: input 'truth' has no array 'anomaly'")
-        labels = truth.arrays["anomaly"]
+        labels = input_array(frame, "truth", "anomaly", self.kind)
         if labels.ndim != 2:
             raise ValueError(f"accumulator {frame.frame_id}: truth 'anomaly' has shape {labels.shape}; expected (H, W)")
         received = frame.many.get("scores", {})
@@ -82,11 +79,10 @@ class Accumulator(Operator):
             key = (producer, frame.run, frame.seq)
             if key in self.counted:
                 continue
-            score_map = received[producer].arrays.get("map")
-            if score_map is None or score_map.ndim != 2:
-                shape = None if score_map is None else score_map.shape
+            score_map = input_array(frame, "scores", "map", self.kind, producer)
+            if score_map.ndim != 2:
                 raise ValueError(
-                    f"accumulator {frame.frame_id}: map from {producer!r} has shape {shape}; expected (h, w)"
+                    f"accumulator {frame.frame_id}: map from {producer!r} has shape {score_map.shape}; expected (h, w)"
                 )
             resized = resize_nearest(labels, score_map.shape)
             run_metrics = self.per_run.setdefault(frame.run, {}).setdefault(producer, PixelMetrics())

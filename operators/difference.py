@@ -16,7 +16,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from umad_common.dataflow import Context, Frame, Input, Operator, Output
+from umad_common.dataflow import Context, Frame, Input, Operator, Output, input_array
 from umad_common.differences import (
     DifferenceMetric,
     MetricOptions,
@@ -87,11 +87,7 @@ class Difference(Operator):
         self.metric, self.scale = metric, scale
 
     def process(self, frame: Frame) -> dict[str, Output]:
-        message = frame.inputs["frame"]
-        missing = [name for name in FRAME_ARRAYS if name not in message.arrays]
-        if missing:
-            raise KeyError(f"{message.frame_id}: frame message lacks arrays {missing}; expected {list(FRAME_ARRAYS)}")
-        target, recon, preds, pred_valid = (message.arrays[name] for name in FRAME_ARRAYS)
+        target, recon, preds, pred_valid = (input_array(frame, "frame", name, self.kind) for name in FRAME_ARRAYS)
         raw = self.metric(target, recon, preds, pred_valid)
         score = minmax(raw) if self.scale is None else calibrated(raw, self.scale)
         meta = {"metric": self.params.metric, "normalization": self.params.normalization}

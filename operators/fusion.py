@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pydantic import Field, field_validator
 
-from umad_common.dataflow import Frame, Input, JoinParams, Operator, Output
+from umad_common.dataflow import Frame, Input, JoinParams, Operator, Output, input_array
 from umad_common.dataflow.messages import Message
 from umad_common.refine import fuse, used_weights
 
@@ -61,9 +61,7 @@ class Fusion(Operator):
                     f"fusion {frame.frame_id}: two producers report metric {metric!r} "
                     f"({sorted(p for p in received if metric_of(p, received[p]) == metric)}); expected one map per metric"
                 )
-            if "map" not in msg.arrays:
-                raise ValueError(f"fusion {frame.frame_id}: message from {producer!r} has no array 'map'")
-            maps[metric] = msg.arrays["map"]
+            maps[metric] = input_array(frame, "maps", "map", self.kind, producer)
         weights = self.params.weights
         fused = fuse(maps, weights)
         used = used_weights(set(maps), weights)

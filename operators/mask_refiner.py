@@ -12,7 +12,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from umad_common.dataflow import Frame, Input, Operator, Output
+from umad_common.dataflow import Frame, Input, Operator, Output, input_array
 from umad_common.refine import refine, resize_nearest
 
 
@@ -42,13 +42,8 @@ class MaskRefiner(Operator):
     Params = MaskRefinerParams
 
     def process(self, frame: Frame) -> dict[str, Output]:
-        fused_msg, masks_msg = frame.inputs["fused"], frame.inputs["masks"]
-        if "map" not in fused_msg.arrays:
-            raise ValueError(f"mask_refiner {frame.frame_id}: input 'fused' has no array 'map'")
-        if "masks" not in masks_msg.arrays:
-            raise ValueError(f"mask_refiner {frame.frame_id}: input 'masks' has no array 'masks'")
-        fused = fused_msg.arrays["map"]
-        masks = masks_msg.arrays["masks"]
+        fused = input_array(frame, "fused", "map", self.kind)
+        masks = input_array(frame, "masks", "masks", self.kind)
         if fused.ndim != 2 or masks.ndim != 3:
             raise ValueError(
                 f"mask_refiner {frame.frame_id}: got fused {fused.shape} and masks {masks.shape}; "

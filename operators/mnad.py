@@ -11,7 +11,7 @@ from __future__ import annotations
 from pydantic import BaseModel, ConfigDict, Field
 
 from umad_common import ASSETS
-from umad_common.dataflow import Frame, Input, Operator, Output
+from umad_common.dataflow import Frame, Input, Operator, Output, input_array
 
 SHIPPED_WEIGHTS = ASSETS / "mnad.safetensors"
 
@@ -50,9 +50,8 @@ class MnadPredictor(Operator):
     def process(self, frame: Frame) -> dict[str, Output]:
         from umad_common.models.mnad import to_input
 
-        camera = frame.inputs["camera"]
-        if "rgb" not in camera.arrays:
-            raise ValueError(f"mnad {frame.frame_id}: input 'camera' has no array 'rgb'")
-        x = to_input(camera.arrays["rgb"], self.model.cfg)  # raises on a non-(H, W, 3) uint8 image
+        x = to_input(
+            input_array(frame, "camera", "rgb", self.kind), self.model.cfg
+        )  # raises on a non-(H, W, 3) uint8 image
         score_map = self.model.anomaly_map(x)[0].numpy().astype("float32")
         return {"map": Output({"map": score_map}, {"model": "mnad", "score": "l2", "weights": self.weights_name})}

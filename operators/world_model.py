@@ -25,8 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from umad_common.dataflow import Frame, Input, Operator, Output
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow import Frame, Input, Operator, Output, input_array
 
 if TYPE_CHECKING:
     import torch
@@ -51,13 +50,6 @@ class WorldModelParams(BaseModel):
         "a reconstruction from the last step's state and no predictions",
     )
     threads: int = Field(default=1, ge=1, description="torch CPU threads of this process")
-
-
-def array_of(frame: Frame, port: str, key: str) -> np.ndarray:
-    msg: Message | None = frame.inputs.get(port)
-    if msg is None or key not in msg.arrays:
-        raise ValueError(f"world_model {frame.frame_id}: input {port!r} lacks array {key!r}")
-    return msg.arrays[key]
 
 
 class WorldModelPredictor(Operator):
@@ -104,14 +96,14 @@ class WorldModelPredictor(Operator):
     def observation(self, frame: Frame) -> tuple[Observation, np.ndarray, np.ndarray]:
         """Model inputs (B = T = 1), the target (h, w, 3) float32 and the action (2,) of this frame."""
         c, wm, torch = self.config, self.wm, self.torch
-        rgb = wm.resize_rgb(np.asarray(array_of(frame, "camera", "rgb"), np.uint8), c)
-        ego = np.asarray(array_of(frame, "ego", "ego"), np.float32).reshape(-1)
+        rgb = wm.resize_rgb(np.asarray(input_array(frame, "camera", "rgb", self.kind), np.uint8), c)
+        ego = np.asarray(input_array(frame, "ego", "ego", self.kind), np.float32).reshape(-1)
         if ego.shape != (4,):
             raise ValueError(
                 f"world_model {frame.frame_id}: ego has shape {ego.shape}; expected (4,) [speed, throttle, brake, steer]"
             )
-        lidar = wm.lidar_range_image(array_of(frame, "lidar", "points"), c)
-        route = wm.resize_route(array_of(frame, "route", "route"), c)
+        lidar = wm.lidar_range_image(input_array(frame, "lidar", "points", self.kind), c)
+        route = wm.resize_route(input_array(frame, "route", "route", self.kind), c)
         target = rgb.astype(np.float32) / 255.0
         obs = wm.Observation(
             rgb=torch.from_numpy(target).permute(2, 0, 1)[None, None],

@@ -113,7 +113,7 @@ def test_labels_to_masks_drops_small_and_ignored_labels():
 
 
 def test_gt_without_truth_and_bad_targets_are_refused():
-    with pytest.raises(ValueError, match="needs input 'truth' with array 'instance'"):
+    with pytest.raises(ValueError, match="input 'truth' lacks array 'instance'"):
         Segmenter({"method": "gt"}).process(scene_frame(with_truth=False))
     gray = Frame("drive", 0, 0, inputs={"frame": Message("drive", 0, arrays={"target": np.zeros((H, W))})})
     with pytest.raises(ValueError, match=r"expected \(h, w, 3\)"):
@@ -372,7 +372,7 @@ def test_geometry_without_lidar_is_refused_or_falls_back_to_the_rest_method():
     slic = Segmenter({"method": "slic"}).process(frame)["masks"].arrays["masks"]
     np.testing.assert_array_equal(fallback.process(frame)["masks"].arrays["masks"], slic)
     no_port = scene_frame(with_truth=False)
-    with pytest.raises(ValueError, match="needs input 'lidar' with array 'points'"):
+    with pytest.raises(ValueError, match="input 'lidar' lacks array 'points'"):
         Segmenter({"method": "geometry"}).process(no_port)
     with pytest.raises(ValidationError, match="would nest geometry"):
         Segmenter({"method": "geometry", "options": {"rest": "geometry"}})

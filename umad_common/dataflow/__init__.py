@@ -5,6 +5,7 @@ Operator authors import the operator API from here:
 
     from umad_common.dataflow import Context, Frame, Input, Operator, Output, Source, SourceFrame
     from umad_common.dataflow import JoinParams, SourceParams  # a joining operator's, a source's pacing
+    from umad_common.dataflow import input_array  # an input's array, or MissingInputError naming it
 
 The names load on first use, so `import umad_common.dataflow.bus` (what `umad set` and `umad op`
 need) does not import numpy or pydantic.
@@ -20,11 +21,13 @@ if TYPE_CHECKING:
         Context,
         Frame,
         Input,
+        MissingInputError,
         NoParams,
         Operator,
         Output,
         Source,
         SourceFrame,
+        input_array,
     )
     from umad_common.dataflow.pacing import JoinParams, SourceParams
 
@@ -32,6 +35,8 @@ OPERATOR_API = {  # name -> the engine module that defines it
     "Context": "operator",
     "Frame": "operator",
     "Input": "operator",
+    "MissingInputError": "operator",
+    "input_array": "operator",
     "NoParams": "operator",
     "Operator": "operator",
     "Output": "operator",
@@ -45,12 +50,14 @@ __all__ = [
     "Frame",
     "Input",
     "JoinParams",
+    "MissingInputError",
     "NoParams",
     "Operator",
     "Output",
     "Source",
     "SourceFrame",
     "SourceParams",
+    "input_array",
 ]
 
 

@@ -75,6 +75,21 @@ class Frame:
         return f"{self.run}#{self.seq}"
 
 
+class MissingInputError(ValueError):
+    """A frame's input lacks an array the operator reads."""
+
+
+def input_array(frame: Frame, port: str, name: str, operator: str, producer: str | None = None) -> np.ndarray:
+    """Array `name` of input `port` (of `producer`'s message on a `many` port). Raises
+    `MissingInputError` naming the operator, the frame, the port, the array and what arrived."""
+    message = frame.inputs.get(port) if producer is None else frame.many.get(port, {}).get(producer)
+    if message is None or name not in message.arrays:
+        where = f"input {port!r}" if producer is None else f"input {port!r} from {producer!r}"
+        arrived = "no message" if message is None else f"arrays {sorted(message.arrays)}"
+        raise MissingInputError(f"{operator} {frame.frame_id}: {where} lacks array {name!r}; got {arrived}")
+    return message.arrays[name]
+
+
 @dataclass
 class Context:
     """Where an operator runs: its id in the graph, its replica index, where relative paths resolve."""

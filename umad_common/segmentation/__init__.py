@@ -22,7 +22,6 @@ from umad_common.segmentation.base import (
     SegmenterInputError,
     SegmenterMethod,
     connected_regions,
-    input_array,
     labels_to_masks,
     masks_to_labels,
 )
@@ -70,7 +69,6 @@ __all__ = [
     "build_segmenter",
     "connected_regions",
     "gt_masks",
-    "input_array",
     "labels_to_masks",
     "masks_to_labels",
     "segmenter_class",

@@ -73,17 +73,8 @@ class SegmenterMethod:
 
 
 class SegmenterInputError(ValueError):
-    """A frame lacks an input array a method needs; the message names the frame, port and array."""
-
-
-def input_array(frame: Frame, port: str, name: str, method: str) -> np.ndarray:
-    """Array `name` of input `port`, with an error naming what is missing."""
-    message = frame.inputs.get(port)
-    if message is None or name not in message.arrays:
-        raise SegmenterInputError(
-            f"segmenter {frame.frame_id}: method {method!r} needs input {port!r} with array {name!r}"
-        )
-    return message.arrays[name]
+    """A frame's input cannot serve a method (a sensor setup without the camera, lidar points of the
+    wrong shape); the message names the frame and what was expected."""
 
 
 def labels_to_masks(labels: np.ndarray, min_area: int = 1, ignore: int | None = None) -> np.ndarray:

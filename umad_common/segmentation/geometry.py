@@ -25,12 +25,11 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from scipy import ndimage
 
-from umad_common.dataflow import Context, Frame
+from umad_common.dataflow import Context, Frame, input_array
 from umad_common.segmentation.base import (
     TUNED,
     SegmenterInputError,
     SegmenterMethod,
-    input_array,
     masks_to_labels,
     sklearn_cluster,
 )
@@ -193,7 +192,7 @@ class Geometry(SegmenterMethod):
     def __call__(self, image: np.ndarray, frame: Frame) -> np.ndarray:
         p = self.params
         shape = image.shape[:2]
-        points = np.asarray(input_array(frame, "lidar", "points", self.name), np.float64)
+        points = np.asarray(input_array(frame, "lidar", "points", f"segmenter method {self.name!r}"), np.float64)
         rest = self.rest(image, frame) if self.rest is not None else np.zeros((0, *shape), bool)
         if len(points) == 0:
             if p.no_lidar == "error":

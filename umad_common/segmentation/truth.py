@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from umad_common.dataflow import Frame
+from umad_common.dataflow import Frame, input_array
 from umad_common.refine import resize_nearest
-from umad_common.segmentation.base import SegmenterMethod, connected_regions, input_array, labels_to_masks
+from umad_common.segmentation.base import SegmenterMethod, connected_regions, labels_to_masks
 
 
 def gt_masks(
@@ -57,6 +57,6 @@ class GroundTruth(SegmenterMethod):
         stuff_min_area: int = Field(16, ge=1, description="stuff regions smaller than this get no mask (px)")
 
     def __call__(self, image: np.ndarray, frame: Frame) -> np.ndarray:
-        instance = input_array(frame, "truth", "instance", self.name)
+        instance = input_array(frame, "truth", "instance", f"segmenter method {self.name!r}")
         semantic = frame.inputs["truth"].arrays.get("semantic")
         return gt_masks(instance, image.shape[:2], semantic, self.params.stuff, self.params.stuff_min_area)
