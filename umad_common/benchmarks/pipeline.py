@@ -44,6 +44,7 @@ from umad_common.dataflow import Context, Frame, Operator, Source
 from umad_common.dataflow.allocator import keep_freed_memory
 from umad_common.dataflow.graph import Graph, validate_graph
 from umad_common.dataflow.messages import Message
+from umad_common.dataflow.operator import delivered
 from umad_common.dataflow.runtime import one_blas_thread
 
 STAGE_FIELDS = ("cpu_ms", "runtime_cpu_ms", "wait_ms", "queue_ms", "transport_ms", "p50_ms")
@@ -138,16 +139,16 @@ def _chain_in_this_process(graph: Graph, ready: Callable[[], object] | None) -> 
         cpu_s[source_id] += time.process_time() - cpu_start
         count += 1
         published = {
-            (source_id, port): Message(sf.run, sf.seq, sf.stamp_ns, source_id, out.meta, out.arrays)
-            for port, out in sf.outputs.items()
+            (source_id, port): msg
+            for port, msg in delivered(sf.outputs, sf.run, sf.seq, sf.stamp_ns, source_id).items()
         }
         for op_id in (op for op in order if op != source_id):
             frame = joined_inputs(graph, op_id, sf.run, sf.seq, sf.stamp_ns, published)
             cpu_start = time.process_time()
             outputs = ops[op_id].process(frame)
             cpu_s[op_id] += time.process_time() - cpu_start
-            for port, out in outputs.items():
-                published[(op_id, port)] = Message(sf.run, sf.seq, sf.stamp_ns, op_id, out.meta, out.arrays)
+            for port, msg in delivered(outputs, sf.run, sf.seq, sf.stamp_ns, op_id).items():
+                published[(op_id, port)] = msg
     elapsed = time.perf_counter() - start
     for op in ops.values():
         op.close()

@@ -12,33 +12,30 @@ import tempfile
 import time
 from pathlib import Path
 
-from umad_common.dataflow import Frame
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow import SourceFrame
+from umad_common.dataflow.operator import frame_of
 
 WARMUP_FRAMES = 4
 
 
-def drive_frames(frames: int) -> list[dict[str, Message]]:
-    """The replayer's messages for each frame of one generated anomalous drive."""
+def drive_frames(frames: int) -> list[SourceFrame]:
+    """The replayer's frames of one generated anomalous drive."""
     from operators.replayer import Replayer
     from umad_common.datasets.synthetic.generator import generate_benchmark
 
     data = Path(tempfile.mkdtemp(prefix="umad-bench-predictors-"))
     generate_benchmark(data, 0, 1, frames, 1, (384, 256))
     replayer = Replayer({"source": str(data / "anomalous")})
-    return [
-        {port: Message(sf.run, sf.seq, sf.stamp_ns, arrays=out.arrays) for port, out in sf.outputs.items()}
-        for sf in replayer.frames()
-    ]
+    return list(replayer.frames())
 
 
-def frames_per_second(operator, messages: list[dict[str, Message]], ports: tuple[str, ...]) -> float:
-    for msgs in messages[:WARMUP_FRAMES]:
-        operator.process(Frame(msgs["camera"].run, msgs["camera"].seq, 0, inputs={p: msgs[p] for p in ports}))
+def frames_per_second(operator, frames: list[SourceFrame], ports: tuple[str, ...]) -> float:
+    for sf in frames[:WARMUP_FRAMES]:
+        operator.process(frame_of(sf.outputs, ports, sf.run, sf.seq))
     start = time.perf_counter()
-    for msgs in messages[WARMUP_FRAMES:]:
-        operator.process(Frame(msgs["camera"].run, msgs["camera"].seq, 0, inputs={p: msgs[p] for p in ports}))
-    return (len(messages) - WARMUP_FRAMES) / (time.perf_counter() - start)
+    for sf in frames[WARMUP_FRAMES:]:
+        operator.process(frame_of(sf.outputs, ports, sf.run, sf.seq))
+    return (len(frames) - WARMUP_FRAMES) / (time.perf_counter() - start)
 
 
 def bench_predictors(frames: int = 40) -> dict:
@@ -47,12 +44,12 @@ def bench_predictors(frames: int = 40) -> dict:
     from operators.mnad import MnadPredictor
     from operators.world_model import WorldModelPredictor
 
-    messages = drive_frames(frames + WARMUP_FRAMES)
-    result: dict = {"frames": len(messages) - WARMUP_FRAMES, "camera": "384x256", "model_size": "192x128"}
+    drive = drive_frames(frames + WARMUP_FRAMES)
+    result: dict = {"frames": len(drive) - WARMUP_FRAMES, "camera": "384x256", "model_size": "192x128"}
     for threads in (1, 2):
         world_model = WorldModelPredictor({"threads": threads})
-        wm_fps = frames_per_second(world_model, messages, ("camera", "lidar", "ego", "route"))
-        mnad_fps = frames_per_second(MnadPredictor({"threads": threads}), messages, ("camera",))
+        wm_fps = frames_per_second(world_model, drive, ("camera", "lidar", "ego", "route"))
+        mnad_fps = frames_per_second(MnadPredictor({"threads": threads}), drive, ("camera",))
         result[f"threads_{threads}"] = {"world_model_fps": wm_fps, "mnad_fps": mnad_fps}
     torch.set_num_threads(1)
     result["world_model_fps_ratio_2_over_1_threads"] = (

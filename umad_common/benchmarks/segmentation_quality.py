@@ -29,8 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from umad_common.dataflow import Frame
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow import Frame, Output
+from umad_common.dataflow.operator import frame_of
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import fuse, refine, resize_nearest
 from umad_common.segmentation import connected_regions
@@ -134,20 +134,17 @@ def fused_maps_along(
     world model is stateful); each map is min-max normalised per frame and fused with equal weights,
     the paper's plain setting.
     """
+    from operators.replayer import frame_outputs
     from operators.world_model import WorldModelPredictor
     from umad_common.differences import build_metric, minmax
 
     predictor = WorldModelPredictor({"model": str(world_model), "threads": 1})
+    ports = [port.name for port in WorldModelPredictor.inputs]
     difference = {name: build_metric(name) for name in metrics}
     weights = dict.fromkeys(metrics, 1.0)
     for sample, raw in frames:
-        inputs = {
-            "camera": Message(sample.run, sample.seq, arrays={"rgb": raw.rgb}),
-            "lidar": Message(sample.run, sample.seq, arrays={"points": raw.lidar}),
-            "ego": Message(sample.run, sample.seq, arrays={"ego": raw.ego.as_array()}),
-            "route": Message(sample.run, sample.seq, arrays={"route": raw.route}),
-        }
-        out = predictor.process(Frame(sample.run, sample.seq, 0, inputs=inputs))["frame"].arrays
+        inputs = frame_of(frame_outputs(raw, sample.run), ports, sample.run, sample.seq)
+        out = predictor.process(inputs)["frame"].arrays
         arrays = (out["target"], out["recon"], out["preds"], out["pred_valid"])
         maps = {name: minmax(metric(*arrays)) for name, metric in difference.items()}
         sample.fused = fuse(maps, weights)
@@ -161,14 +158,10 @@ def operator_frame(sample: LabelledFrame) -> Frame:
         truth["instance"] = sample.instance
     if sample.semantic is not None:
         truth["semantic"] = sample.semantic
-    inputs = {
-        "frame": Message(sample.run, sample.seq, arrays={"target": sample.target}),
-        "truth": Message(sample.run, sample.seq, arrays=truth),
-    }
+    outputs = {"frame": Output({"target": sample.target}), "truth": Output(truth)}
     if sample.lidar is not None:
-        meta = {"sensors": sample.sensors} if sample.sensors else {}
-        inputs["lidar"] = Message(sample.run, sample.seq, meta=meta, arrays={"points": sample.lidar})
-    return Frame(sample.run, sample.seq, 0, inputs=inputs)
+        outputs["lidar"] = Output({"points": sample.lidar}, {"sensors": sample.sensors} if sample.sensors else {})
+    return frame_of(outputs, outputs, sample.run, sample.seq)
 
 
 def frame_quality(

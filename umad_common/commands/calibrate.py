@@ -83,19 +83,11 @@ def sensor_frames(scenario, limit: int) -> Iterator:
     open a label file) as the replayer sends them to the world model: camera, lidar, ego, route."""
     from operators.replayer import frame_outputs
     from operators.world_model import WorldModelPredictor
-    from umad_common.dataflow import Frame
-    from umad_common.dataflow.messages import Message
+    from umad_common.dataflow.operator import frame_of
 
     ports = [port.name for port in WorldModelPredictor.inputs]
     for seq in range(min(len(scenario), limit)):
-        outputs = frame_outputs(scenario[seq], scenario.name)
-        inputs = {
-            port: Message(
-                scenario.name, seq, 0, producer="calibrate", meta=outputs[port].meta, arrays=outputs[port].arrays
-            )
-            for port in ports
-        }
-        yield Frame(scenario.name, seq, 0, inputs=inputs)
+        yield frame_of(frame_outputs(scenario[seq], scenario.name), ports, scenario.name, seq, producer="calibrate")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -20,7 +20,7 @@ parameters and call `process(frame)` in a unit test, no Zenoh needed.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
@@ -73,6 +73,23 @@ class Frame:
     @property
     def frame_id(self) -> str:
         return f"{self.run}#{self.seq}"
+
+
+def delivered(
+    outputs: Mapping[str, Output], run: str, seq: int, stamp_ns: int = 0, producer: str = ""
+) -> dict[str, Message]:
+    """One frame's outputs as the messages its consumers receive, by output port (the runtime also
+    records the producer's parameters in each meta; in-process callers go without)."""
+    return {port: Message(run, seq, stamp_ns, producer, out.meta, out.arrays) for port, out in outputs.items()}
+
+
+def frame_of(
+    outputs: Mapping[str, Output], ports: Iterable[str], run: str, seq: int, stamp_ns: int = 0, producer: str = ""
+) -> Frame:
+    """The frame an operator is handed when each of its input `ports` is wired to the output of the
+    same name: how a recorded or generated frame (`frame_outputs` of the replayer, a bench's
+    drive) becomes an operator's inputs outside a running graph."""
+    return Frame(run, seq, stamp_ns, inputs=delivered({p: outputs[p] for p in ports}, run, seq, stamp_ns, producer))
 
 
 class MissingInputError(ValueError):
