@@ -197,7 +197,7 @@ def test_vgg16_loads_torchvision_state_dict(tmp_path):
     state = torchvision_vgg16_state()
     path = tmp_path / "vgg16.pth"
     torch.save(state, path)
-    model = load_vgg16_features(path)
+    model, _ = load_vgg16_features(path)
     assert torch.equal(model.features[21].weight, state["features.21.weight"])
     levels = model(torch.rand(1, 3, 32, 48))
     assert [tuple(f.shape[1:]) for f in levels] == [(64, 32, 48), (128, 16, 24), (256, 8, 12), (512, 4, 6)]
@@ -241,7 +241,7 @@ def feature_file(tmp_path):
 
 
 def test_feature_net_roundtrip_and_perceptual_identity(feature_file):
-    loaded = load_feature_net(feature_file)
+    loaded, _ = load_feature_net(feature_file)
     assert feature_file.with_suffix(".json").is_file()
     levels = loaded(torch.rand(2, 3, 32, 48))
     assert [tuple(f.shape) for f in levels] == [(2, 16, 32, 48), (2, 32, 16, 24), (2, 64, 8, 12), (2, 128, 4, 6)]
@@ -257,7 +257,7 @@ def test_feature_training_is_deterministic_and_small():
 
     frames = (np.random.default_rng(0).random((12, 128, 192, 3)) * 255).astype(np.uint8)
     cfg = FeatureTrainingConfig(epochs=1, batch_size=6)
-    a, b = train_feature_net(frames, cfg), train_feature_net(frames, cfg)
+    (a, _), (b, _) = train_feature_net(frames, cfg), train_feature_net(frames, cfg)
     for key, value in a.state_dict().items():
         assert torch.equal(value, b.state_dict()[key]), key
     assert sum(v.numel() for v in a.state_dict().values()) * 4 < 5e6
@@ -426,5 +426,5 @@ def test_train_features_command_reads_only_training_rgb(tmp_path):
         data=tmp_path / "bench", out=out, epochs=1, seed=0, frames=100, batch_size=2, holdout=1, threads=1
     )
     assert train_features.run(args) == 0
-    model = load_feature_net(out)
-    assert model.config.training["frames"] == 4 and model.config.training["heldout_drives"] == ["Scenario_b"]
+    _, record = load_feature_net(out)
+    assert record["training"]["frames"] == 4 and record["training"]["heldout_drives"] == ["Scenario_b"]

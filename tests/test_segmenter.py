@@ -179,7 +179,10 @@ def test_kmeans_feature_net_file_is_checked_at_construction(tmp_path):
         Segmenter({"method": "kmeans", "options": {"features": "feature_net"}})
     with pytest.raises(ValueError, match="missing.json"):
         Segmenter(
-            {"method": "kmeans", "options": {"features": "feature_net", "feature_net": str(tmp_path / "missing.st")}}
+            {
+                "method": "kmeans",
+                "options": {"features": "feature_net", "feature_net": str(tmp_path / "missing.safetensors")},
+            }
         )
 
 

@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         epochs=args.epochs, seed=args.seed, max_frames=args.frames, batch_size=args.batch_size, holdout=args.holdout
     )
     frames, heldout = load_normal_rgb(args.data, cfg)
-    model = train_feature_net(frames, cfg, data_name=recorded_path(args.data), heldout=heldout)
-    save_feature_net(model, args.out)
-    log.info("wrote %s (+ %s), %s", args.out, args.out.with_suffix(".json").name, model.config.training)
+    model, record = train_feature_net(frames, cfg, data_name=recorded_path(args.data), heldout=heldout)
+    save_feature_net(model, args.out, record)
+    log.info("wrote %s (+ %s), %s", args.out, args.out.with_suffix(".json").name, record["training"])
     return 0

@@ -31,14 +31,14 @@ class PerceptualDifference(DifferenceMetric):
         if options.vgg_weights is not None:
             from umad_common.models.vgg16 import load_vgg16_features
 
-            return cls(load_vgg16_features(options.vgg_weights), "vgg16")
+            return cls(load_vgg16_features(options.vgg_weights)[0], "vgg16")
         if options.features is None:
             raise DifferenceInputError(
                 "perceptual: needs `vgg_weights` or `features` (a feature net file); got neither"
             )
         from umad_common.models.feature_net import load_feature_net
 
-        return cls(load_feature_net(options.features), "feature_net")
+        return cls(load_feature_net(options.features)[0], "feature_net")
 
     @property
     def calibration_key(self) -> str:

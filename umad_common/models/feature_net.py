@@ -6,21 +6,19 @@ objective: features of two photometrically different views of the same frame (bl
 jitter: the ways a world model's picture of a normal scene differs from the camera) must agree at
 every pixel, while varying across pixels and frames and staying decorrelated across channels.
 
-The file format is safetensors (`features.N.weight`, ...) plus a JSON config next to it
-(`<file>.json`) holding `FeatureNetConfig`.
+The file format is every model's (`umad_common/models/weights.py`): NAME.safetensors
+(`features.N.weight`, ...) plus NAME.json, `{"config": FeatureNetConfig, "training": {...}}`.
 """
 
 from __future__ import annotations
 
-import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
 from torch import nn
 
-from umad_common.models.vgg16 import load_into, read_state_dict
-from umad_common.models.weights import WeightsError
+from umad_common.models.weights import WeightsError, load_tensors, read_record, save_weights, weight_paths
 
 
 @dataclass
@@ -28,7 +26,6 @@ class FeatureNetConfig:
     widths: tuple[int, int, int, int] = (16, 32, 64, 128)  # channels of the four levels (1, 1/2, 1/4, 1/8)
     mean: tuple[float, float, float] = (0.5, 0.5, 0.5)  # input normalisation, RGB in [0, 1]
     std: tuple[float, float, float] = (0.25, 0.25, 0.25)
-    training: dict = field(default_factory=dict)  # how the file was made (data, epochs, seed, loss)
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "config") -> FeatureNetConfig:
@@ -42,6 +39,9 @@ class FeatureNetConfig:
         if len(cfg.widths) != 4 or len(cfg.mean) != 3 or len(cfg.std) != 3:
             raise WeightsError(f"{source}: expected 4 widths and 3 mean/std values, got {data}")
         return cfg
+
+    def to_dict(self) -> dict:
+        return asdict(self)
 
 
 class FeatureNet(nn.Module):
@@ -76,31 +76,14 @@ class FeatureNet(nn.Module):
         return out
 
 
-def config_path(weights: Path) -> Path:
-    """Where the JSON config of a weight file lives: `<file>.json` beside `<file>.safetensors`."""
-    return weights.with_suffix(".json")
+def save_feature_net(model: FeatureNet, path: str | Path, record: dict | None = None) -> Path:
+    """Write NAME.safetensors and NAME.json (the config and the training record)."""
+    return save_weights(model, path, model.config.to_dict(), record)
 
 
-def save_feature_net(model: FeatureNet, path: str | Path) -> None:
-    """Write `path` (safetensors) and its JSON config."""
-    from safetensors.torch import save_file
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    save_file({k: v.detach().contiguous() for k, v in model.state_dict().items()}, str(path))
-    config_path(path).write_text(json.dumps(asdict(model.config), indent=2) + "\n")
-
-
-def load_feature_net(path: str | Path) -> FeatureNet:
-    """A trained FeatureNet in eval mode; raises WeightsError naming the file, key and shapes."""
-    path = Path(path)
-    cfg_file = config_path(path)
-    if not cfg_file.is_file():
-        raise WeightsError(f"{cfg_file}: feature net config not found (expected beside {path.name})")
-    try:
-        data = json.loads(cfg_file.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise WeightsError(f"{cfg_file}: cannot read feature net config ({exc})") from None
-    model = FeatureNet(FeatureNetConfig.from_dict(data, str(cfg_file)))
-    load_into(model, read_state_dict(path), path)
-    return model.eval().requires_grad_(False)
+def load_feature_net(path: str | Path) -> tuple[FeatureNet, dict]:
+    """A trained FeatureNet in eval mode and its JSON record; raises WeightsError naming the file,
+    key and shapes."""
+    record = read_record(path, "feature net")
+    model = FeatureNet(FeatureNetConfig.from_dict(record["config"], str(weight_paths(path)[1])))
+    return load_tensors(model, path).eval().requires_grad_(False), record

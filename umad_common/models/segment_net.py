@@ -99,8 +99,9 @@ def save_segment_net(model: SegmentNet, path: str | Path, record: dict) -> Path:
     return save_weights(model, path, model.config.to_dict(), record)
 
 
-def load_segment_net(path: str | Path) -> SegmentNet:
-    """A trained SegmentNet in eval mode; raises WeightsError naming the file, key and shapes."""
+def load_segment_net(path: str | Path) -> tuple[SegmentNet, dict]:
+    """A trained SegmentNet in eval mode and its JSON record; raises WeightsError naming the file,
+    key and shapes."""
     record = read_record(path, "segment net")
     model = SegmentNet(SegmentNetConfig.from_dict(record["config"], str(path)))
-    return load_tensors(model, path).eval().requires_grad_(False)
+    return load_tensors(model, path).eval().requires_grad_(False), record

@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from umad_common.models.weights import WeightsError
+from umad_common.models.weights import load_upstream_tensors
 
 # torchvision's configuration "D" up to conv4_3; "M" is a 2x2 max-pool.
 VGG16_TRUNK = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512)
@@ -52,41 +52,7 @@ class Vgg16Features(nn.Module):
         return out
 
 
-def read_state_dict(path: Path) -> dict[str, torch.Tensor]:
-    """Tensors from a `.safetensors` file or a `torch.save`d dict (loaded with weights_only=True)."""
-    if not path.is_file():
-        raise WeightsError(f"{path}: weight file not found")
-    try:
-        if path.suffix == ".safetensors":
-            from safetensors.torch import load_file
-
-            return load_file(str(path))
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise WeightsError(f"{path}: cannot read weights ({type(exc).__name__}: {exc})") from None
-    if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
-        state = state["state_dict"]
-    if not isinstance(state, dict):
-        raise WeightsError(f"{path}: expected a state dict of tensors, got {type(state).__name__}")
-    return state
-
-
-def load_into(model: nn.Module, state: dict[str, torch.Tensor], path: Path) -> None:
-    """Copy every parameter of `model` from `state`, keys and shapes checked; other keys ignored."""
-    expected = model.state_dict()
-    for key, want in expected.items():
-        if key not in state:
-            raise WeightsError(f"{path}: missing key {key!r} (expected shape {tuple(want.shape)})")
-        got = state[key]
-        if not isinstance(got, torch.Tensor) or tuple(got.shape) != tuple(want.shape):
-            got_shape = tuple(got.shape) if isinstance(got, torch.Tensor) else type(got).__name__
-            raise WeightsError(f"{path}: layer {key!r} expected shape {tuple(want.shape)}, got {got_shape}")
-    model.load_state_dict({key: state[key].float() for key in expected}, strict=True)
-
-
-def load_vgg16_features(path: str | Path) -> Vgg16Features:
-    """Vgg16Features with weights from a torchvision-format VGG16 state dict file, in eval mode."""
-    path = Path(path)
-    model = Vgg16Features()
-    load_into(model, read_state_dict(path), path)
-    return model.eval().requires_grad_(False)
+def load_vgg16_features(path: str | Path) -> tuple[Vgg16Features, dict]:
+    """Vgg16Features with weights from a torchvision-format VGG16 state dict file, in eval mode, and
+    its record: `{}`, an upstream file has none."""
+    return load_upstream_tensors(Vgg16Features(), path).eval().requires_grad_(False), {}

@@ -1,11 +1,15 @@
 """Weight files of every model: NAME.safetensors with NAME.json beside it (the config and the
-training record), and the one error every loader raises for a file that cannot be used."""
+training record), and the one error every loader raises for a file that cannot be used.
+
+Every loader returns `(model, record)`: the model in eval mode and the JSON record (`{}` for a file
+in its upstream format, such as a torchvision VGG16 state dict, which has no record beside it)."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 
@@ -70,4 +74,34 @@ def load_tensors(model: nn.Module, path: str | Path) -> nn.Module:
                 f"expected {tuple(tensor.shape)} for config {meta.name}"
             )
     model.load_state_dict(tensors)
+    return model
+
+
+def load_upstream_tensors(model: nn.Module, path: str | Path) -> nn.Module:
+    """Fill `model` from a file in its upstream format: a `.safetensors` file or a `torch.save`d
+    state dict (loaded with weights_only=True, never pickle); keys and shapes checked, other keys
+    (a classifier the model does not have) ignored."""
+    path = Path(path)
+    if not path.is_file():
+        raise WeightsError(f"{path}: weight file not found")
+    try:
+        if path.suffix == ".safetensors":
+            state = load_file(str(path))
+        else:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise WeightsError(f"{path}: cannot read weights ({type(exc).__name__}: {exc})") from None
+    if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
+        state = state["state_dict"]
+    if not isinstance(state, dict):
+        raise WeightsError(f"{path}: expected a state dict of tensors, got {type(state).__name__}")
+    expected = model.state_dict()
+    for key, want in expected.items():
+        if key not in state:
+            raise WeightsError(f"{path}: missing key {key!r} (expected shape {tuple(want.shape)})")
+        got = state[key]
+        if not isinstance(got, torch.Tensor) or tuple(got.shape) != tuple(want.shape):
+            got_shape = tuple(got.shape) if isinstance(got, torch.Tensor) else type(got).__name__
+            raise WeightsError(f"{path}: layer {key!r} expected shape {tuple(want.shape)}, got {got_shape}")
+    model.load_state_dict({key: state[key].float() for key in expected}, strict=True)
     return model

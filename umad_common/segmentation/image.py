@@ -92,7 +92,7 @@ class FeatureNetFeatures:
         from umad_common.models.feature_net import load_feature_net
 
         self.torch = torch
-        self.net = load_feature_net(weights)
+        self.net, _ = load_feature_net(weights)
         self.weight = weight
         self.position_weight = position_weight
 

@@ -58,7 +58,7 @@ class Learned(SegmenterMethod):
         from umad_common.models.segment_net import load_segment_net
 
         self.torch = torch
-        self.net = load_segment_net(context.resolve(self.params.weights))
+        self.net, _ = load_segment_net(context.resolve(self.params.weights))
 
     def __call__(self, image: np.ndarray, frame: Frame) -> np.ndarray:
         torch = self.torch

@@ -144,8 +144,9 @@ def dense_vicreg_loss(
 
 def train_feature_net(
     frames: np.ndarray, cfg: FeatureTrainingConfig, data_name: str = "", heldout: list[str] | None = None
-) -> FeatureNet:
-    """Train on (N, h, w, 3) uint8 normal frames; deterministic for a given seed and thread count."""
+) -> tuple[FeatureNet, dict]:
+    """Train on (N, h, w, 3) uint8 normal frames; deterministic for a given seed and thread count.
+    Returns the model and its record (`{"training": {...}}`, for `save_feature_net`)."""
     was_deterministic = torch.are_deterministic_algorithms_enabled()
     torch.use_deterministic_algorithms(True)
     try:
@@ -154,7 +155,9 @@ def train_feature_net(
         torch.use_deterministic_algorithms(was_deterministic)
 
 
-def _train(frames: np.ndarray, cfg: FeatureTrainingConfig, data_name: str, heldout: list[str]) -> FeatureNet:
+def _train(
+    frames: np.ndarray, cfg: FeatureTrainingConfig, data_name: str, heldout: list[str]
+) -> tuple[FeatureNet, dict]:
     from tqdm import tqdm
 
     torch.manual_seed(cfg.seed)
@@ -189,7 +192,7 @@ def _train(frames: np.ndarray, cfg: FeatureTrainingConfig, data_name: str, heldo
             progress.update(1)
             progress.set_postfix(loss=f"{loss.item():.3f}")
     progress.close()
-    model.config.training = {
+    training = {
         "objective": "dense VICReg on the feature levels of two photometric views (blur, colour, noise)",
         "data": data_name,
         "heldout_drives": heldout,
@@ -204,4 +207,4 @@ def _train(frames: np.ndarray, cfg: FeatureTrainingConfig, data_name: str, heldo
         "seconds": round(time.monotonic() - started, 1),
         "threads": torch.get_num_threads(),
     }
-    return model.eval().requires_grad_(False)
+    return model.eval().requires_grad_(False), {"training": training}
