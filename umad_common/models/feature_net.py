@@ -18,7 +18,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from umad_common.models.weights import WeightsError, load_tensors, read_record, save_weights, weight_paths
+from umad_common.models.vgg16 import tapped_levels
+from umad_common.models.weights import WeightsError, load_model, save_weights
 
 
 @dataclass
@@ -66,14 +67,7 @@ class FeatureNet(nn.Module):
 
     def forward(self, rgb: torch.Tensor) -> list[torch.Tensor]:
         """(B, 3, H, W) in [0, 1] -> four maps (B, widths[i], H/2^i, W/2^i), i = 0..3."""
-        x = (rgb - self.mean) / self.std
-        taps = set(self.taps)
-        out = []
-        for index, layer in enumerate(self.features):
-            x = layer(x)
-            if index in taps:
-                out.append(x)
-        return out
+        return tapped_levels(self.features, (rgb - self.mean) / self.std, self.taps)
 
 
 def save_feature_net(model: FeatureNet, path: str | Path, record: dict | None = None) -> Path:
@@ -84,6 +78,6 @@ def save_feature_net(model: FeatureNet, path: str | Path, record: dict | None = 
 def load_feature_net(path: str | Path) -> tuple[FeatureNet, dict]:
     """A trained FeatureNet in eval mode and its JSON record; raises WeightsError naming the file,
     key and shapes."""
-    record = read_record(path, "feature net")
-    model = FeatureNet(FeatureNetConfig.from_dict(record["config"], str(weight_paths(path)[1])))
-    return load_tensors(model, path).eval().requires_grad_(False), record
+    return load_model(
+        path, "feature net", lambda config, source: FeatureNet(FeatureNetConfig.from_dict(config, source))
+    )

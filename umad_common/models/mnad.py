@@ -15,7 +15,7 @@ stateless. Input: (B, 3, 128, 192) in [-1, 1]; output the same through tanh.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from umad_common.models.weights import WeightsError, load_tensors, read_record, save_weights, weight_paths
+from umad_common.models.weights import config_from_dict, load_model, save_weights
 
 
 @dataclass
@@ -57,11 +57,7 @@ class MnadConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> MnadConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"unknown MNAD config keys {unknown}; expected some of {sorted(known)}")
-        return cls(**data)
+        return config_from_dict(cls, data, "MNAD")
 
 
 class MnadOutput(NamedTuple):
@@ -210,9 +206,4 @@ def save_mnad(model: Mnad, path: str | Path, record: dict | None = None) -> Path
 
 def load_mnad(path: str | Path) -> tuple[Mnad, dict]:
     """Load NAME.safetensors + NAME.json; returns the model in eval mode and the JSON record."""
-    record = read_record(path, "MNAD")
-    try:
-        cfg = MnadConfig.from_dict(record["config"])
-    except (ValueError, KeyError, TypeError) as exc:
-        raise WeightsError(f"{weight_paths(path)[1]}: not an MNAD config ({exc})") from None
-    return load_tensors(Mnad(cfg), path).eval().requires_grad_(False), record
+    return load_model(path, "MNAD", lambda config, _: Mnad(MnadConfig.from_dict(config)))

@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from umad_common.models.weights import WeightsError, load_tensors, read_record, save_weights
+from umad_common.models.weights import WeightsError, load_model, save_weights
 
 
 @dataclass
@@ -102,6 +102,6 @@ def save_segment_net(model: SegmentNet, path: str | Path, record: dict) -> Path:
 def load_segment_net(path: str | Path) -> tuple[SegmentNet, dict]:
     """A trained SegmentNet in eval mode and its JSON record; raises WeightsError naming the file,
     key and shapes."""
-    record = read_record(path, "segment net")
-    model = SegmentNet(SegmentNetConfig.from_dict(record["config"], str(path)))
-    return load_tensors(model, path).eval().requires_grad_(False), record
+    return load_model(
+        path, "segment net", lambda config, source: SegmentNet(SegmentNetConfig.from_dict(config, source))
+    )

@@ -7,6 +7,7 @@ No weights ship with UMAD and nothing downloads: the user names a local file.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 
 import torch
@@ -42,14 +43,18 @@ class Vgg16Features(nn.Module):
     def forward(self, rgb: torch.Tensor) -> list[torch.Tensor]:
         """(B, 3, H, W) in [0, 1] -> [relu1_2 (B,64,H,W), relu2_2 (B,128,H/2,W/2),
         relu3_3 (B,256,H/4,W/4), relu4_3 (B,512,H/8,W/8)]."""
-        x = (rgb - self.mean) / self.std
-        taps = set(VGG16_TAPS.values())
-        out = []
-        for index, layer in enumerate(self.features):
-            x = layer(x)
-            if index in taps:
-                out.append(x)
-        return out
+        return tapped_levels(self.features, (rgb - self.mean) / self.std, VGG16_TAPS.values())
+
+
+def tapped_levels(features: nn.Sequential, x: torch.Tensor, taps: Iterable[int]) -> list[torch.Tensor]:
+    """Run `x` through `features`, keeping the output of each layer whose index is in `taps`."""
+    taps = set(taps)
+    out = []
+    for index, layer in enumerate(features):
+        x = layer(x)
+        if index in taps:
+            out.append(x)
+    return out
 
 
 def load_vgg16_features(path: str | Path) -> tuple[Vgg16Features, dict]:

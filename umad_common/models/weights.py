@@ -7,11 +7,17 @@ in its upstream format, such as a torchvision VGG16 state dict, which has no rec
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
+from dataclasses import fields
 from pathlib import Path
+from typing import TypeVar
 
 import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
+
+M = TypeVar("M", bound=nn.Module)
+C = TypeVar("C")
 
 
 class WeightsError(ValueError):
@@ -24,6 +30,16 @@ def weight_paths(path: str | Path) -> tuple[Path, Path]:
     path = Path(path)
     stem = path.with_suffix("") if path.suffix in (".safetensors", ".json") else path
     return stem.with_name(stem.name + ".safetensors"), stem.with_name(stem.name + ".json")
+
+
+def config_from_dict(cls: type[C], data: dict, what: str) -> C:
+    """A model's config dataclass from its record's dict; a key it does not know is a ValueError
+    naming it."""
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ValueError(f"{what} config has unknown fields {unknown}; expected a subset of {sorted(known)}")
+    return cls(**data)
 
 
 def save_weights(model: nn.Module, path: str | Path, config: dict, record: dict | None = None) -> Path:
@@ -52,6 +68,21 @@ def read_record(path: str | Path, what: str) -> dict:
     if not isinstance(record, dict) or not isinstance(record.get("config"), dict):
         raise WeightsError(f"{meta}: no 'config' object; expected the {what} config and training record")
     return record
+
+
+def load_model(path: str | Path, what: str, build: Callable[[dict, str], M]) -> tuple[M, dict]:
+    """A model from NAME.safetensors + NAME.json, in eval mode without gradients, and its record.
+    `build(config, source)` makes the model from the record's config; a config it cannot take
+    (ValueError, KeyError or TypeError) becomes a WeightsError naming the JSON file."""
+    record = read_record(path, what)
+    source = str(weight_paths(path)[1])
+    try:
+        model = build(record["config"], source)
+    except WeightsError:
+        raise
+    except (ValueError, KeyError, TypeError) as exc:
+        raise WeightsError(f"{source}: not a {what} config ({exc})") from None
+    return load_tensors(model, path).eval().requires_grad_(False), record
 
 
 def load_tensors(model: nn.Module, path: str | Path) -> nn.Module:

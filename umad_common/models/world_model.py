@@ -27,7 +27,7 @@ here too, so training, evaluation and the predictor operator feed the model iden
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from umad_common.models.weights import WeightsError, load_tensors, read_record, save_weights, weight_paths
+from umad_common.models.weights import config_from_dict, load_model, save_weights
 
 
 @dataclass
@@ -127,11 +127,7 @@ class WorldModelConfig:
 
     @classmethod
     def from_dict(cls, values: dict) -> WorldModelConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"world model config has unknown fields {unknown}; expected a subset of {sorted(known)}")
-        return cls(**values)
+        return config_from_dict(cls, values, "world model")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -520,9 +516,4 @@ def save_world_model(model: WorldModel, path: str | Path, record: dict | None = 
 
 def load_world_model(path: str | Path) -> tuple[WorldModel, dict]:
     """Load MODEL.safetensors + MODEL.json; returns the model (eval mode) and the JSON record."""
-    record = read_record(path, "world model")
-    try:
-        config = WorldModelConfig.from_dict(record["config"])
-    except (ValueError, TypeError) as exc:
-        raise WeightsError(f"{weight_paths(path)[1]}: not a world model config ({exc})") from None
-    return load_tensors(WorldModel(config), path).eval(), record
+    return load_model(path, "world model", lambda config, _: WorldModel(WorldModelConfig.from_dict(config)))
