@@ -125,24 +125,34 @@ def test_messages_larger_than_the_graphs_shared_memory_pool_arrive_exactly_once(
     assert_exactly_once(tmp_path, 10)
 
 
+def pid_once_sinking(tmp_path, pattern: str, wait_s: float = 60) -> int | None:
+    """The pid of the process whose command line matches `pattern`, once the sink has written more
+    than 10 lines (None if that does not happen within `wait_s`)."""
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        out = subprocess.run(["pgrep", "-f", "--", pattern], capture_output=True, text=True)
+        if out.stdout.strip() and (tmp_path / "sink.jsonl").exists() and len(sink_lines(tmp_path)) > 10:
+            return int(out.stdout.split()[0])
+        time.sleep(0.05)
+    return None
+
+
+def survives_sigkill(proc, pid: int, launcher_says: str, tmp_path, timeout: float) -> None:
+    """SIGKILL `pid`; the launched graph still finishes cleanly, its launcher says `launcher_says`,
+    and the sink saw every frame exactly once."""
+    os.kill(pid, signal.SIGKILL)
+    out, _ = proc.communicate(timeout=timeout)
+    assert proc.returncode == 0, out
+    assert launcher_says in out
+    assert_exactly_once(tmp_path, 60)
+
+
 def test_sigkill_of_a_replica_loses_and_duplicates_nothing(tmp_path, hub_endpoint):
     graph = toy_graph(tmp_path, hub_endpoint, frames=60, delay=0.03)
     proc = start_umad("launch", str(graph))
-    victim = None
-    deadline = time.monotonic() + 60
-    while victim is None and time.monotonic() < deadline:
-        out = subprocess.run(
-            ["pgrep", "-f", "--", f"--graph {graph} --op double --replica 1"], capture_output=True, text=True
-        )
-        if out.stdout.strip() and (tmp_path / "sink.jsonl").exists() and len(sink_lines(tmp_path)) > 10:
-            victim = int(out.stdout.split()[0])
-        time.sleep(0.05)
+    victim = pid_once_sinking(tmp_path, f"--graph {graph} --op double --replica 1")
     assert victim, "replica never started"
-    os.kill(victim, signal.SIGKILL)
-    out, _ = proc.communicate(timeout=180)
-    assert proc.returncode == 0, out
-    assert "restart 1/3" in out
-    assert_exactly_once(tmp_path, 60)
+    survives_sigkill(proc, victim, "restart 1/3", tmp_path, timeout=180)
 
 
 def test_malformed_payloads_are_counted_and_the_operator_goes_on(tmp_path, hub_endpoint):
@@ -358,21 +368,9 @@ def test_operator_that_cannot_start_fails_the_graph_without_restarts(tmp_path, h
 def test_hub_restart_is_survived_by_reconnecting_clients(tmp_path, hub_endpoint):
     graph = toy_graph(tmp_path, hub_endpoint, frames=60, delay=0.03)
     proc = start_umad("launch", str(graph))
-    deadline = time.monotonic() + 60
-    hub_pid = None
-    while hub_pid is None and time.monotonic() < deadline:
-        out = subprocess.run(
-            ["pgrep", "-f", "--", f"umad_common.dataflow.hub --listen {hub_endpoint}"], capture_output=True, text=True
-        )
-        if out.stdout.strip() and (tmp_path / "sink.jsonl").exists() and len(sink_lines(tmp_path)) > 10:
-            hub_pid = int(out.stdout.split()[0])
-        time.sleep(0.05)
+    hub_pid = pid_once_sinking(tmp_path, f"umad_common.dataflow.hub --listen {hub_endpoint}")
     assert hub_pid
-    os.kill(hub_pid, signal.SIGKILL)
-    out, _ = proc.communicate(timeout=240)
-    assert proc.returncode == 0, out
-    assert "[hub] exited with -9; restarting" in out
-    assert_exactly_once(tmp_path, 60)
+    survives_sigkill(proc, hub_pid, "[hub] exited with -9; restarting", tmp_path, timeout=240)
 
 
 def test_hot_swap_start_stop_and_set_take_effect_on_later_frames(tmp_path, hub_endpoint):
