@@ -310,3 +310,50 @@ def test_cli_writes_benchmark_and_preview(tmp_path):
     assert main(args) == 2  # refuses to write into a folder that already holds scenarios
     with pytest.raises(SystemExit):
         main(["generate", "synthetic", str(tmp_path / "x"), "--size", "64by48"])
+
+
+def test_stress_plans_cover_the_weathers_unevenly_and_leave_the_default_plans_alone():
+    from umad_common.datasets.synthetic.generator import STRESS_SEED, stress_coverage
+
+    plans = plan_benchmark(12, 8, STRESS_SEED, stress=True)
+    normal = [p.weather for p in plans if p.split == "normal"]
+    anomalous = [p for p in plans if p.split == "anomalous"]
+    counts = {w: normal.count(w) for w in WEATHER_NAMES}
+    assert counts == stress_coverage(12, 8)["normal"]
+    assert counts["clear_noon"] == 0 and counts["dusk"] == 1 and counts["night"] == 1 and max(counts.values()) >= 4
+    rare = {w for w, n in counts.items() if n <= 1}
+    assert sum(p.weather in rare for p in anomalous) > len(anomalous) / 2  # mostly under rare presets...
+    assert any(p.weather not in rare for p in anomalous)  # ...among others
+    assert all(p.anomaly is not None for p in anomalous)
+    default = plan_benchmark(12, 6, 0)
+    assert {p.weather for p in default if p.split == "normal"} == set(WEATHER_NAMES)
+    assert not {p.scenario_id for p in default} & {p.scenario_id for p in plans}
+
+
+def test_stress_drive_stops_far_before_the_object_and_waits_to_the_end():
+    from umad_common.datasets.synthetic.generator import STRESS_WAIT_M
+
+    for seed, category in ((1, "home"), (2, "animal"), (3, "nature")):
+        scenario = SyntheticScenario(seed, 200, category, "dusk", camera=SMALL, wait_at=STRESS_WAIT_M)
+        track, anomaly = scenario.track, scenario.anomaly
+        assert anomaly.behaviour == "brake"
+        still = np.flatnonzero(track.speed < 0.05)
+        assert still.size and still[0] < 70, f"seed {seed}: standing still from frame {still[:1]}, expected < 70"
+        assert np.all(track.speed[still[0] :] < 0.05), "the ego must wait to the end of the drive"
+        gap = anomaly.s - max(anomaly.shape.size[:2]) / 2 - track.s[-1]
+        assert 19.0 <= gap <= 41.0, f"seed {seed}: the ego stops {gap:.1f} m before the object, expected 20-40"
+    with pytest.raises(ValueError, match="wait_at"):
+        SyntheticScenario(1, 10, "home", camera=SMALL, wait_at=(30.0, 20.0))
+
+
+def test_cli_writes_the_stress_set(tmp_path):
+    import json
+
+    from umad_common.cli import main
+
+    args = ["generate", "synthetic", str(tmp_path), "--stress", "--normal", "2", "--anomalous", "1"]
+    assert main([*args, "--frames", "2", "--size", "64x48"]) == 0
+    config = json.loads((tmp_path / "Scenario_Configuration_Files" / "scenario_config_map_Synthetic.json").read_text())
+    assert config["set"] == "stress" and config["seed"] == 30 and config["wait_m"] == [20.0, 40.0]
+    assert [s["weather"] for s in config["scenarios"]] == ["cloudy", "fog", "clear_noon"]
+    assert len(find_scenarios(tmp_path / "normal")) == 2 and len(find_scenarios(tmp_path / "anomalous")) == 1

@@ -2,6 +2,10 @@
 
 OUT/normal/Scenario_<uuid>/ holds drives without anomalies (training data), OUT/anomalous/ drives with
 one anomalous object on the road each (evaluation data). Same arguments, same bytes.
+
+`--stress` writes the stress set instead (its own default seed and drive counts, never part of the
+default benchmark): uneven weather coverage in the normal drives, an ego waiting 20-40 m before the
+object under rarely seen light in the anomalous ones.
 """
 
 from __future__ import annotations
@@ -26,21 +30,41 @@ def parse_size(text: str) -> tuple[int, int]:
     return width, height
 
 
+STRESS_HELP = (
+    "write the stress set instead of the default benchmark (defaults: --normal 12 --anomalous 8 "
+    "--seed 30). Normal drives cover the presets unevenly, per 12 drives: cloudy 5, fog 3, rain 2, "
+    "dusk 1, night 1, clear_noon 0 (the cycle cloudy fog rain dusk cloudy fog rain cloudy fog cloudy "
+    "night cloudy). Anomalous drives cycle clear_noon dusk fog night clear_noon dusk rain cloudy; in "
+    "each the ego brakes early, stops 20-40 m before the object and waits there to the end"
+)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("out", type=Path, help="output folder (must not already hold normal/ or anomalous/ scenarios)")
-    parser.add_argument("--normal", type=int, default=12, help="number of normal drives (default 12, 2 per weather)")
-    parser.add_argument("--anomalous", type=int, default=6, help="number of drives with an anomaly (default 6)")
+    parser.add_argument(
+        "--normal", type=int, default=None, help="number of normal drives (default 12: 2 per weather; --stress: 12)"
+    )
+    parser.add_argument(
+        "--anomalous", type=int, default=None, help="number of drives with an anomaly (default 6; --stress: 8)"
+    )
     parser.add_argument("--frames", type=int, default=200, help="frames per drive at 10 Hz (default 200)")
-    parser.add_argument("--seed", type=int, default=0, help="master seed; same seed, same bytes (default 0)")
+    parser.add_argument(
+        "--seed", type=int, default=None, help="master seed; same seed, same bytes (default 0; --stress: 30)"
+    )
     parser.add_argument("--size", type=parse_size, default=(384, 256), help="camera image size WxH (default 384x256)")
+    parser.add_argument("--stress", action="store_true", help=STRESS_HELP)
     parser.add_argument("--preview", action="store_true", help="also write OUT/preview.png, a contact sheet")
 
 
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from umad_common.datasets.synthetic.generator import generate_benchmark, write_preview
+    from umad_common.datasets.synthetic.generator import STRESS_SEED, generate_benchmark, write_preview
 
+    defaults = {"normal": 12, "anomalous": 8 if args.stress else 6, "seed": STRESS_SEED if args.stress else 0}
+    for name, value in defaults.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
     for name in ("normal", "anomalous", "frames"):
         if getattr(args, name) < (1 if name == "frames" else 0):
             log.error("--%s must be %s, got %d", name, ">= 1" if name == "frames" else ">= 0", getattr(args, name))
@@ -52,9 +76,9 @@ def run(args: argparse.Namespace) -> int:
             return 2
     total = (args.normal + args.anomalous) * args.frames
     started = time.perf_counter()
-    with tqdm(total=total, unit="frame", desc="generate synthetic") as bar:
+    with tqdm(total=total, unit="frame", desc="generate stress set" if args.stress else "generate synthetic") as bar:
         roots = generate_benchmark(
-            out, args.normal, args.anomalous, args.frames, args.seed, args.size, on_frame=bar.update
+            out, args.normal, args.anomalous, args.frames, args.seed, args.size, on_frame=bar.update, stress=args.stress
         )
     seconds = time.perf_counter() - started
     log.info(

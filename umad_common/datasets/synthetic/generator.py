@@ -3,6 +3,11 @@
 Output is a pure function of the arguments: scenario seeds, folder uuids and first frame ids come
 from one seeded generator, PNGs are written by cv2 (deterministic zlib), files carry no timestamps.
 Normal drives cycle through every weather preset, so a model trained on them has seen each one.
+
+The stress set (`stress=True`, its own default seed STRESS_SEED) is what the default benchmark
+never shows: normal drives that cover the presets unevenly (STRESS_NORMAL_WEATHERS: some in one
+drive of twelve, clear_noon in none) and anomalous drives, mostly under those rare presets, in which
+the ego brakes early to stand 20-40 m before the object and waits there to the end of the drive.
 """
 
 from __future__ import annotations
@@ -23,6 +28,16 @@ from umad_common.datasets.synthetic.render import WEATHER_NAMES, CameraSpec, Lid
 from umad_common.datasets.synthetic.scenario import SyntheticScenario
 
 MOUNT = "(0, 0, 1.8)(0, 0, 0)"
+STRESS_SEED = 30  # the stress set's default master seed
+# Normal drives of the stress set cycle through these twelve: cloudy 5, fog 3, rain 2, dusk 1,
+# night 1, clear_noon 0 (any four drives already hold dusk once).
+STRESS_NORMAL_WEATHERS = (
+    "cloudy", "fog", "rain", "dusk", "cloudy", "fog", "rain", "cloudy", "fog", "cloudy", "night", "cloudy",
+)  # fmt: skip
+# Anomalous drives of the stress set cycle through these eight: mostly the rare and unseen presets,
+# with fog, rain and cloudy (well covered) as controls.
+STRESS_ANOMALOUS_WEATHERS = ("clear_noon", "dusk", "fog", "night", "clear_noon", "dusk", "rain", "cloudy")
+STRESS_WAIT_M = (20.0, 40.0)  # gap between the stopped ego and the object in the stress set's anomalous drives
 PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 EGO_TYPE = "vehicle.lincoln.mkz_2020"
 
@@ -39,9 +54,12 @@ class ScenarioPlan:
     first_frame_id: int
 
 
-def plan_benchmark(normal: int, anomalous: int, seed: int) -> list[ScenarioPlan]:
+def plan_benchmark(normal: int, anomalous: int, seed: int, stress: bool = False) -> list[ScenarioPlan]:
     """Scenario plans: normal drives cycle through all weathers; anomalous ones through categories
-    and weathers."""
+    and weathers. With `stress`, weathers cycle through STRESS_NORMAL_WEATHERS and
+    STRESS_ANOMALOUS_WEATHERS instead."""
+    if stress:
+        return _plan_stress(normal, anomalous, seed)
     rng = np.random.default_rng(seed)
     plans = []
     for split, count in (("normal", normal), ("anomalous", anomalous)):
@@ -57,6 +75,33 @@ def plan_benchmark(normal: int, anomalous: int, seed: int) -> list[ScenarioPlan]
             category = CATEGORIES[k % len(CATEGORIES)] if split == "anomalous" else None
             plans.append(ScenarioPlan(split, scenario_id, scenario_seed, weather, category, first))
     return plans
+
+
+def _plan_stress(normal: int, anomalous: int, seed: int) -> list[ScenarioPlan]:
+    rng = np.random.default_rng(seed)
+    plans = []
+    for split, count, weathers in (
+        ("normal", normal, STRESS_NORMAL_WEATHERS),
+        ("anomalous", anomalous, STRESS_ANOMALOUS_WEATHERS),
+    ):
+        for k in range(count):
+            scenario_id = str(uuid.UUID(bytes=rng.bytes(16), version=4))
+            scenario_seed = int(rng.integers(2**31))
+            first = int(rng.integers(1_000, 60_000))
+            category = CATEGORIES[k % len(CATEGORIES)] if split == "anomalous" else None
+            plans.append(ScenarioPlan(split, scenario_id, scenario_seed, weathers[k % len(weathers)], category, first))
+    return plans
+
+
+def stress_coverage(normal: int, anomalous: int) -> dict[str, dict[str, int]]:
+    """Drives per weather preset of a stress set of this size: {"normal": {...}, "anomalous": {...}}."""
+    return {
+        split: {w: sum(weathers[k % len(weathers)] == w for k in range(count)) for w in WEATHER_NAMES}
+        for split, count, weathers in (
+            ("normal", normal, STRESS_NORMAL_WEATHERS),
+            ("anomalous", anomalous, STRESS_ANOMALOUS_WEATHERS),
+        )
+    }
 
 
 def sensor_setup(camera: CameraSpec, lidar: LidarSpec) -> dict[str, dict]:
@@ -155,21 +200,34 @@ def generate_benchmark(
     seed: int,
     size: tuple[int, int],
     on_frame: Callable[[], None] | None = None,
+    stress: bool = False,
 ) -> list[Path]:
-    """Write OUT/normal/Scenario_*, OUT/anomalous/Scenario_* and the scenario config file."""
+    """Write OUT/normal/Scenario_*, OUT/anomalous/Scenario_* and the scenario config file; with
+    `stress`, the stress set (see the module docstring) for the same arguments."""
     camera = CameraSpec(width=size[0], height=size[1])
+    wait_at = STRESS_WAIT_M if stress else None
     records, roots = [], []
-    for plan in plan_benchmark(normal, anomalous, seed):
-        scenario = SyntheticScenario(plan.seed, frames, plan.anomaly, plan.weather, camera=camera)
+    for plan in plan_benchmark(normal, anomalous, seed, stress):
+        scenario = SyntheticScenario(plan.seed, frames, plan.anomaly, plan.weather, camera=camera, wait_at=wait_at)
         (out / plan.split).mkdir(parents=True, exist_ok=True)
         roots.append(write_scenario(scenario, plan, out / plan.split, on_frame))
         records.append(scenario_record(plan, scenario))
     config_dir = out / "Scenario_Configuration_Files"
     config_dir.mkdir(parents=True, exist_ok=True)
     (config_dir / "scenario_config_map_Synthetic.json").write_text(
-        json.dumps({"seed": seed, "scenarios": records}, indent=2, sort_keys=True) + "\n"
+        json.dumps(
+            {"seed": seed, "scenarios": records, **_stress_note(stress, normal, anomalous)}, indent=2, sort_keys=True
+        )
+        + "\n"
     )
     return roots
+
+
+def _stress_note(stress: bool, normal: int, anomalous: int) -> dict:
+    """What the config file adds for a stress set (nothing for the default benchmark)."""
+    if not stress:
+        return {}
+    return {"set": "stress", "wait_m": list(STRESS_WAIT_M), "weather_drives": stress_coverage(normal, anomalous)}
 
 
 def _label(image: np.ndarray, text: str) -> np.ndarray:

@@ -127,9 +127,18 @@ class SyntheticScenario:
         weather: str | None = None,
         camera: CameraSpec | None = None,
         lidar: LidarSpec | None = None,
+        wait_at: tuple[float, float] | None = None,
     ):
+        """Args:
+        wait_at: (nearest, farthest) gap in metres between the stopped ego and the anomaly: the
+            ego brakes early in the drive to stand that far before the object and waits there
+            to the end (the stress set). None: the default benchmark's behaviours (a stop 5-9 m
+            before the object, or a slow pass), drawn exactly as before.
+        """
         if frames < 1:
             raise ValueError(f"frames must be >= 1, got {frames}")
+        if wait_at is not None and not 0 < wait_at[0] <= wait_at[1]:
+            raise ValueError(f"wait_at must be (nearest, farthest) metres with 0 < nearest <= farthest, got {wait_at}")
         rng = np.random.default_rng(seed)
         self.seed, self.frames = seed, frames
         self.camera, self.lidar = camera or CameraSpec(), lidar or LidarSpec()
@@ -151,9 +160,14 @@ class SyntheticScenario:
         limit, stop = None, None
         if anomaly_category is not None:
             shape = make_anomaly(rng, anomaly_category)
-            behaviour = "brake" if rng.random() < 0.5 else "pass"
+            behaviour = "brake" if rng.random() < 0.5 or wait_at is not None else "pass"
             half_extent = max(shape.size[0], shape.size[1]) / 2
-            if behaviour == "brake":
+            if behaviour == "brake" and wait_at is not None:  # stop far away early, wait to the end
+                s_stop = rng.uniform(15.0, 25.0)  # brakes at once: standing still after about 5 s
+                s_a = s_stop + rng.uniform(*wait_at) + half_extent
+                d_a = EGO_LANE_D + rng.uniform(-0.6, 0.6)
+                stop = (s_stop, frames)
+            elif behaviour == "brake":
                 s_stop = float(free.s[int(frames * rng.uniform(0.25, 0.45))])
                 s_a = s_stop + rng.uniform(5.0, 9.0) + half_extent
                 d_a = EGO_LANE_D + rng.uniform(-0.6, 0.6)
