@@ -38,6 +38,20 @@ ANOMALY_CATEGORIES = {
     100: "anomaly",
 }
 GENERIC_ANOMALY_TAG = 100
+EGO_VEHICLE_TAG = 214
+# CARLA 0.9.14 semantic tag names (ANOVOX.md); every anomaly tag is named "anomaly".
+CLASS_NAMES = {
+    0: "unlabeled", 1: "road", 2: "sidewalk", 3: "building", 4: "wall", 5: "fence", 6: "pole", 7: "traffic light",
+    8: "traffic sign", 9: "vegetation", 10: "terrain", 11: "sky", 12: "pedestrian", 13: "rider", 14: "car",
+    15: "truck", 16: "bus", 17: "train", 18: "motorcycle", 19: "bicycle", 20: "static", 21: "dynamic", 22: "other",
+    23: "water", 24: "road line", 25: "ground", 26: "bridge", 27: "rail track", 28: "guard rail",
+    **{tag: "anomaly" for tag in ANOMALY_TAGS}, EGO_VEHICLE_TAG: "ego vehicle",
+}  # fmt: skip
+
+
+def class_name(tag: int) -> str:
+    """The dataset's name of a semantic tag (`tag <n>` for one CARLA does not name)."""
+    return CLASS_NAMES.get(int(tag), f"tag {int(tag)}")
 ANOMALY_COLOUR = (245, 0, 0)  # benchmark SEMANTIC_IMG colour of every anomaly pixel
 DEPTH_SCALE = 1000.0 / (2**24 - 1)  # CARLA raw depth: metres per unit of R + 256 G + 65536 B
 KMH_PER_MPS = 3.6
