@@ -2,7 +2,7 @@
 
 A log (umad_common/dataflow/mcap_log.py) holds each bus message's exact payload on the channel `umad/<graph>/<op>/<output>`:
 
-- `<replayer>/truth`    -> the anomaly labels (0/1/255);
+- `<replayer>/truth`    -> the anomaly labels (0/1/255) and the semantic tags;
 - `<world_model>/frame` -> target and reconstruction (kept as uint8, for the overlay pictures);
 - `<op>/map` with meta `metric` -> one normalised difference map per metric (aliases pd/td accepted);
 - `<segmenter>/masks`   -> (K, h, w) bool masks per segmenter operator (meta `method`), bit-packed;
@@ -63,6 +63,7 @@ class FrameRecord:
     masks: dict[str, PackedMasks] = field(default_factory=dict)  # segmenter op -> (K, h, w) bool, packed
     mnad: np.ndarray | None = None  # (h', w') float32
     anomaly_tags: tuple[int, ...] = ()  # semantic tags under the anomaly pixels (AnoVox categories)
+    semantic: np.ndarray | None = None  # (H, W) uint8 CARLA tags, where the truth carries them
 
 
 @dataclass
@@ -151,7 +152,8 @@ def _fill(record: FrameRecord, op: str, output: str, msg, stats: LogStats) -> No
         record.truth = np.array(arrays["anomaly"], dtype=np.uint8)
         semantic = arrays.get("semantic")
         if semantic is not None and semantic.shape == record.truth.shape:
-            found = np.unique(semantic[record.truth == 1])
+            record.semantic = np.array(semantic, dtype=np.uint8)
+            found = np.unique(record.semantic[record.truth == 1])
             record.anomaly_tags = tuple(int(t) for t in found if int(t) in ANOMALY_TAGS)
     elif output == "frame" and "target" in arrays and "recon" in arrays:
         record.target, record.recon = _to_uint8(arrays["target"]), _to_uint8(arrays["recon"])

@@ -5,7 +5,9 @@ segmenter, the MNAD map, regrouped by `(run, seq)`). Each configuration fuses an
 and `refine`, so a sweep row equals the live pipeline's numbers) and streams its pixels into its own
 `PixelMetrics`: memory is one 1 MiB histogram per configuration plus a few frames in flight. With
 `components`, a second read of the log adds SegmentMeIfYouCan component metrics for the headline
-configurations at their best pixel-F1 thresholds.
+configurations at their best pixel-F1 thresholds. The same pass feeds the report's diagnosis
+(`umad_common.metrics.diagnosis`): where each map's top 1 % of pixels lies by semantic class, and the
+anomaly's frame-relative score against frames since it first became visible.
 
 Rows and settings: the paper's 15 weight rows in its order, then ours (`WeightRow.extra`); per
 segmenter the refinements mean, max, single (the paper's) and single_keep_raw (ours), plus no mask.
@@ -27,6 +29,7 @@ from replay.frames import FrameRecord, LogStats, frames_from_log
 from replay.protocol import run_protocol
 from umad_common.dataflow.mcap_log import LogError, describe_loss, read_metadata, recording_outcome
 from umad_common.metrics.components import ComponentMetrics
+from umad_common.metrics.diagnosis import Diagnosis
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import MAX_CHUNK_ELEMENTS, fuse, only_the_best, paint_masks, refine, resize_nearest
 
@@ -168,6 +171,7 @@ class SweepResult:
     truth_shapes: set[tuple[int, int]] = field(default_factory=set)  # (H, W) of the labels before resizing
     protocol: dict = field(default_factory=dict)  # what the run used: data, models, PD network (replay.protocol)
     every: int = 1  # the sweep scored frames with seq % every == 0
+    diagnosis: dict = field(default_factory=dict)  # Diagnosis.compute(): error location, score since visible
 
     def row_label(self, row: int) -> str:
         return weights_label(self.rows[row].weights)
@@ -228,6 +232,7 @@ class Sweep:
         self.frames_evaluated: dict[str, list[int]] = {}
         self.score_shapes: set[tuple[int, int]] = set()
         self.truth_shapes: set[tuple[int, int]] = set()
+        self.diagnosis = Diagnosis()
 
     def _count(self, config: Config, scores: np.ndarray, labels: np.ndarray) -> None:
         metrics = self.metrics.get(config)
@@ -257,6 +262,7 @@ class Sweep:
         if self.default_row is None and usable:
             self.default_row = max(usable, key=lambda i: (len(self.rows[i].weights), not self.rows[i].extra, i))
         pictures: dict[str, np.ndarray] = {}
+        followed: dict[str, np.ndarray] = {}  # the default row's maps whose anomaly score the diagnosis follows
         for i in usable:
             self.rows_seen.add(i)
             weights = {m: float(w) for m, w in self.rows[i].weights.items()}
@@ -264,7 +270,7 @@ class Sweep:
             self._count(Config(i, None, "none"), fused, labels)
             if i == self.default_row:
                 self._scenario(frame.run, "no mask").update(fused, labels)
-                pictures["fused"] = fused
+                pictures["fused"] = followed["fused"] = fused
             for op, mask_set in mask_sets.items():
                 for mode, refined in mask_set.refine_all(fused).items():
                     self._count(Config(i, op, mode), refined, labels)
@@ -272,6 +278,9 @@ class Sweep:
                         self._scenario(frame.run, f"{segmenters.get(op, op)} {mode}").update(refined, labels)
                         if mode == "mean":
                             pictures[f"refined ({segmenters.get(op, op)} mean)"] = refined
+                            followed[f"{segmenters.get(op, op)} mean"] = refined
+        location = dict(frame.diffs) | ({"fused": followed["fused"]} if "fused" in followed else {})
+        self.diagnosis.update(frame.run, frame.seq, frame.truth, frame.semantic, location, followed)
         self._keep_overlay(frame, labels, pictures)
 
     def _scenario(self, run: str, label: str) -> PixelMetrics:
@@ -323,6 +332,7 @@ class Sweep:
             score_shapes=self.score_shapes,
             truth_shapes=self.truth_shapes,
             every=self.every,
+            diagnosis=self.diagnosis.compute(),
         )
 
 

@@ -36,8 +36,12 @@ def synthetic_frames(runs=("Scenario_a", "Scenario_b"), n=6, seed=0):
             anomaly[0, :] = 255
             small = anomaly[1::2, 1::2]  # what nearest resize to (8, 12) picks
             maps = {op: (rng.random((h, w)) + 0.6 * (small == 1)).astype(np.float32) / 1.6 for op in METRIC_OPS}
+            maps["diff_ssim"][0, 0] = 1.5  # SSIM's highest pixel is on the sky (semantic row 1)
             gt = np.stack([small == 1, small != 1])
             mnad = rng.random((H, W)).astype(np.float32) + anomaly
+            # run a shows a CARLA `animal` (30), run b a `home` (29) object; sky (11) above road (1)
+            semantic = np.where(anomaly == 1, 30 - runs.index(run), np.where(np.arange(H)[:, None] < H // 2, 11, 1))
+            semantic = semantic.astype(np.uint8)
             tiles = np.stack([np.zeros((h, w), bool) for _ in range(4)])
             for k in range(4):
                 tiles[k, :, 3 * k : 3 * k + 3] = True
@@ -45,12 +49,7 @@ def synthetic_frames(runs=("Scenario_a", "Scenario_b"), n=6, seed=0):
                 (
                     "replayer",
                     "truth",
-                    # run a shows a CARLA `animal` (30), run b a `home` (29) object
-                    {
-                        "anomaly": anomaly,
-                        "instance": anomaly.astype(np.int32),
-                        "semantic": ((anomaly == 1) * (30 - runs.index(run))).astype(np.uint8),
-                    },
+                    {"anomaly": anomaly, "instance": anomaly.astype(np.int32), "semantic": semantic},
                     {},
                 ),
                 ("replayer", "camera", {"rgb": rng.integers(0, 255, (H, W, 3), dtype=np.uint8)}, {}),
@@ -78,7 +77,15 @@ def synthetic_frames(runs=("Scenario_a", "Scenario_b"), n=6, seed=0):
                 run,
                 seq,
                 msgs,
-                {"anomaly": small, "maps": maps, "gt": gt, "tiles": tiles, "truth_full": anomaly, "mnad": mnad},
+                {
+                    "anomaly": small,
+                    "maps": maps,
+                    "gt": gt,
+                    "tiles": tiles,
+                    "truth_full": anomaly,
+                    "mnad": mnad,
+                    "semantic": semantic,
+                },
             )
 
 
@@ -294,6 +301,29 @@ def test_component_metrics_of_mnad_equal_direct(result, log_and_truth):
     assert any(name.startswith("best AP") for name in result.components)
 
 
+def test_diagnosis_equals_direct_computation(result, log_and_truth):
+    truths = log_and_truth[1]
+    diagnosis = result.diagnosis
+    counts = {}
+    for _, _, t in truths:  # top 1 % of 96 pixels: each frame's highest ABS pixel
+        tag = int(t["semantic"][1::2, 1::2].ravel()[np.argmax(t["maps"]["diff_abs"])])
+        counts[tag] = counts.get(tag, 0) + 1
+    assert diagnosis["location"]["overall"]["abs"] == pytest.approx({k: v / 12 for k, v in counts.items()})
+    assert diagnosis["location"]["overall"]["ssim"] == {11: 1.0}  # the top 1 % all on the sky
+    assert set(diagnosis["location"]) == {"overall", "Scenario_a", "Scenario_b"}
+    assert set(diagnosis["location"]["overall"]) == {"abs", "mse", "ssim", "perceptual", "temporal", "fused"}
+    assert sum(diagnosis["location"]["Scenario_a"]["fused"].values()) == pytest.approx(1.0)
+    assert diagnosis["first_visible"] == {"Scenario_a": 0, "Scenario_b": 0}
+    assert set(diagnosis["since_visible"]) == {"fused", "gt mean", "felzenszwalb mean"}
+    weights = weight_rows()[result.default_row].weights
+    for run in ("Scenario_a", "Scenario_b"):
+        frames = [t for r, _, t in truths if r == run]
+        aurocs = [roc_auc_score(t["anomaly"].ravel(), weighted(t, weights).ravel()) for t in frames]
+        (only_bin,) = diagnosis["since_visible"]["fused"][run]  # 6 frames, bins of 20
+        assert (only_bin["from"], only_bin["frames"]) == (0, 6)
+        assert only_bin["rank"] == pytest.approx(np.mean(aurocs), abs=1e-6)
+
+
 def test_truncated_log_stops_at_last_readable_message(log_and_truth, tmp_path):
     data = log_and_truth[0].read_bytes()
     cut = tmp_path / "cut.mcap"
@@ -316,9 +346,17 @@ def test_report_files(result, log_and_truth, tmp_path):
         "per_scenario.md",
         "index.html",
         "overlay_00.png",
+        "since_visible.png",
     ):
         assert (out / name).is_file(), name
     summary = json.loads((out / "results.json").read_text())
+    diagnosis = summary["diagnosis"]
+    assert diagnosis["top_fraction"] == 0.01 and set(diagnosis["location"]["overall"]["abs"]) <= {
+        "sky",
+        "road",
+        "anomaly",
+    }
+    assert diagnosis["since_visible"]["fused"]["all"][0]["frames"] == 12
     assert len(summary["rows"]) == 17 * 9 and summary["baseline"]["name"] == "MNAD"
     assert "MNAD" in summary["components"] and (out / "components.md").is_file()
     assert {"weights", "masks", "AP", "FPR95", "AUROC", "extra"} <= set(summary["rows"][0])
@@ -373,6 +411,7 @@ def test_page_opens_with_the_headline_and_every_picture_exists(result, log_and_t
         "<img",
         "Ablation table",
         "Per scenario",
+        "Diagnosis: where the error lives",
         "Component metrics",
     ]
     positions = [page.index(text) for text in order]
@@ -386,6 +425,7 @@ def test_page_opens_with_the_headline_and_every_picture_exists(result, log_and_t
     assert "<script" not in page and "http" not in page.replace("http-equiv", "")
     markdown = (out / "index.md").read_text()
     assert markdown.index("UMAD / MNAD (AP)") < markdown.index("## AP by weights") < markdown.index("## Ablation")
+    assert "| map | " in markdown and "| Scenario_a | 0 | " in markdown  # location and since-visible tables
     assert all((out / p).is_file() for p in re.findall(r"\]\(([^)]+)\)", markdown))
 
 

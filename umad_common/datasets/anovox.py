@@ -52,6 +52,8 @@ CLASS_NAMES = {
 def class_name(tag: int) -> str:
     """The dataset's name of a semantic tag (`tag <n>` for one CARLA does not name)."""
     return CLASS_NAMES.get(int(tag), f"tag {int(tag)}")
+
+
 ANOMALY_COLOUR = (245, 0, 0)  # benchmark SEMANTIC_IMG colour of every anomaly pixel
 DEPTH_SCALE = 1000.0 / (2**24 - 1)  # CARLA raw depth: metres per unit of R + 256 G + 65536 B
 KMH_PER_MPS = 3.6

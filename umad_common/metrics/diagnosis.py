@@ -24,7 +24,7 @@ from umad_common.refine import resize_nearest
 
 NORMAL, ANOMALY, IGNORE = 0, 1, 255
 TOP_FRACTION = 0.01
-BIN_FRAMES = 10
+BIN_FRAMES = 20
 N_TAGS = 256  # semantic tags are uint8
 
 

@@ -78,3 +78,34 @@ def plot_overlay_grid(images: dict[str, np.ndarray], title: str, path: Path, col
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def plot_since_visible(curves: dict[str, dict[str, list[dict]]], bin_frames: int, path: Path) -> None:
+    """One column per followed map: the anomaly's frame AUROC (top) and its mean score over the normal
+    pixels' 99th percentile (bottom) per bin of frames since it first became visible, a line per
+    scenario, all scenarios together in black."""
+    names = list(curves)
+    fig, axes = plt.subplots(2, len(names), figsize=(5 * len(names), 7), dpi=100, squeeze=False)
+    for column, name in enumerate(names):
+        top, bottom = axes[0, column], axes[1, column]
+        for run, bins in curves[name].items():
+            x = [b["from"] + bin_frames / 2 for b in bins]
+            style = (
+                {"color": "black", "lw": 2.2, "marker": "o", "zorder": 3}
+                if run == "all"
+                else {"lw": 1.0, "marker": "."}
+            )
+            label = "all scenarios" if run == "all" else run[:22]
+            top.plot(x, [100 * b["rank"] if b["rank"] is not None else np.nan for b in bins], label=label, **style)
+            ratio = [b["ratio_p99"] if b["ratio_p99"] is not None else np.nan for b in bins]
+            bottom.plot(x, ratio, label=label, **style)
+        top.axhline(50, color="grey", lw=0.8, ls=":")
+        bottom.axhline(1, color="grey", lw=0.8, ls=":")
+        top.set(title=name, ylabel="frame AUROC of the anomaly (%)", ylim=(0, 101))
+        bottom.set(xlabel="frames since the anomaly first became visible", ylabel="anomaly mean / normal p99")
+        for ax in (top, bottom):
+            ax.grid(alpha=0.3)
+        top.legend(fontsize=6, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

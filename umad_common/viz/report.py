@@ -1,5 +1,5 @@
 """The evaluation report of a sweep: results.json, the ablation table (Markdown, CSV), curves,
-overlay grids, the per-scenario and component tables, and the page tying them together
+overlay grids, the per-scenario, diagnosis (`diagnosis.py`) and component tables, and the page tying them together
 (index.md and index.html, rendered from the same rows by the templates in `templates/`).
 
 The page opens with the headline (`headline.py`): the run's protocol in one line, the best row
@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from umad_common.datasets.anovox import ANOMALY_CATEGORIES
 from umad_common.metrics.pixel import PixelMetrics
+from umad_common.viz.diagnosis import diagnosis_json, diagnosis_section
 from umad_common.viz.headline import SCORES, headline_figures, headline_tables, percent, protocol_line
 from umad_common.viz.pages import Cell, Page, Section, Table, render_table_markdown, text_cells, write_page
 from umad_common.viz.plots import plot_curves, plot_overlay_grid
@@ -312,6 +313,7 @@ def write_report(
             name: {k: (_number(v) if isinstance(v, float) else v) for k, v in c.items()}
             for name, c in result.components.items()
         },
+        "diagnosis": diagnosis_json(result.diagnosis),
         "segmenters": result.segmenters,
         "skipped_weight_rows": [result.row_label(i) for i in result.skipped_rows],
         "log_stats": {k: v for k, v in vars(stats).items() if k not in ("segmenters", "map_notes")},
@@ -353,6 +355,7 @@ def write_report(
             [f"Default weights: {summary['default_weights']}. Files: per_scenario.md, per_scenario.csv."],
             [scenarios],
         ),
+        diagnosis_section(summary["diagnosis"], out, METRIC_COLUMNS, str(summary["default_weights"])),
         Section("Component metrics (SegmentMeIfYouCan)", tables=[components]),
         Section("Run", _run_lines(summary)),
     ]
