@@ -26,9 +26,12 @@ def sky_over_road(h=10, w=10) -> np.ndarray:
 
 def test_top_pixels_takes_the_ceiling_of_the_fraction_and_breaks_ties_by_position():
     scores = np.array([0.2, 0.9, 0.9, 0.1, 0.5])
-    assert top_pixels(scores, 0.01).tolist() == [1]  # at least one pixel
+    assert top_pixels(scores, 0.01).tolist() == [1]  # at least one pixel; of the tied two, the first
     assert top_pixels(scores, 0.5).tolist() == [1, 2, 4]  # ceil(2.5) = 3
-    assert top_pixels(scores, 1.0).tolist() == [1, 2, 4, 0, 3]
+    assert top_pixels(scores, 1.0).tolist() == [0, 1, 2, 3, 4]
+    flat = np.random.default_rng(1).random(1000).round(2)  # many ties
+    expected = np.sort(np.argsort(-flat, kind="stable")[:10])
+    assert top_pixels(flat, 0.01).tolist() == expected.tolist()
 
 
 def test_error_location_counts_each_frames_top_percent_by_class():

@@ -29,10 +29,13 @@ N_TAGS = 256  # semantic tags are uint8
 
 
 def top_pixels(scores: np.ndarray, fraction: float) -> np.ndarray:
-    """Flat indices of the ceil(fraction * n) highest of the 1-D `scores` (ties broken by position)."""
+    """Flat indices of the ceil(fraction * n) highest of the 1-D `scores`, ascending; of pixels tied at
+    the cut, the first by position. O(n): one partition, no sort."""
     k = min(scores.size, max(1, math.ceil(fraction * scores.size)))
-    order = np.argsort(-scores, kind="stable")  # highest first, ties in position order
-    return order[:k]
+    cut = np.partition(scores, scores.size - k)[scores.size - k]  # the k-th highest score
+    above = np.flatnonzero(scores > cut)
+    tied = np.flatnonzero(scores == cut)[: k - above.size]
+    return np.sort(np.concatenate([above, tied]))
 
 
 class ErrorLocation:
