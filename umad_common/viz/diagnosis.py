@@ -112,7 +112,7 @@ def since_visible_tables(summary: dict[str, Any]) -> list[Table]:
     bin_frames = summary.get("bin_frames")
     for name, curves in summary.get("since_visible", {}).items():
         starts = sorted({b["from"] for bins in curves.values() for b in bins})
-        header = ["scenario", "first visible", *(f"{s}-{s + bin_frames - 1}" for s in starts)]
+        header = [f"scenario ({name})", "first visible", *(f"{s}-{s + bin_frames - 1}" for s in starts)]
         lines = []
         for run, bins in curves.items():
             by_start = {b["from"]: b for b in bins}
