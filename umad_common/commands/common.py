@@ -127,3 +127,31 @@ def report(target: str, answers: list[dict], running: RunningGraph) -> bool:
             applied = False
             print(line, file=sys.stderr)
     return applied
+
+
+def add_device_argument(parser: argparse.ArgumentParser) -> None:
+    """`--device auto|cpu|cuda[:N]` of a training verb (default auto: CUDA when present)."""
+    from umad_common.models.device import DEVICE_HELP, check_device_name
+
+    def device_name(value: str) -> str:
+        try:
+            return check_device_name(value)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    parser.add_argument(
+        "--device",
+        type=device_name,
+        default="auto",
+        help=f"where the model trains: {DEVICE_HELP} (default auto); the weights are saved from the CPU either way",
+    )
+
+
+def resolve_device_or_exit(name: str):
+    """The torch device for `--device`, or SystemExit with the reason (e.g. cuda asked, none here)."""
+    from umad_common.models.device import resolve_device
+
+    try:
+        return resolve_device(name)
+    except ValueError as exc:
+        raise SystemExit(f"--device: {exc}") from None

@@ -75,9 +75,9 @@ def save_feature_net(model: FeatureNet, path: str | Path, record: dict | None = 
     return save_weights(model, path, model.config.to_dict(), record)
 
 
-def load_feature_net(path: str | Path) -> tuple[FeatureNet, dict]:
-    """A trained FeatureNet in eval mode and its JSON record; raises WeightsError naming the file,
-    key and shapes."""
+def load_feature_net(path: str | Path, device: str | torch.device = "cpu") -> tuple[FeatureNet, dict]:
+    """A trained FeatureNet on `device` in eval mode and its JSON record; raises WeightsError naming
+    the file, key and shapes."""
     return load_model(
-        path, "feature net", lambda config, source: FeatureNet(FeatureNetConfig.from_dict(config, source))
+        path, "feature net", lambda config, source: FeatureNet(FeatureNetConfig.from_dict(config, source)), device
     )

@@ -204,6 +204,6 @@ def save_mnad(model: Mnad, path: str | Path, record: dict | None = None) -> Path
     return save_weights(model, path, model.cfg.to_dict(), record)
 
 
-def load_mnad(path: str | Path) -> tuple[Mnad, dict]:
-    """Load NAME.safetensors + NAME.json; returns the model in eval mode and the JSON record."""
-    return load_model(path, "MNAD", lambda config, _: Mnad(MnadConfig.from_dict(config)))
+def load_mnad(path: str | Path, device: str | torch.device = "cpu") -> tuple[Mnad, dict]:
+    """Load NAME.safetensors + NAME.json; returns the model on `device` in eval mode and the JSON record."""
+    return load_model(path, "MNAD", lambda config, _: Mnad(MnadConfig.from_dict(config)), device)

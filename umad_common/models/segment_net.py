@@ -99,9 +99,9 @@ def save_segment_net(model: SegmentNet, path: str | Path, record: dict) -> Path:
     return save_weights(model, path, model.config.to_dict(), record)
 
 
-def load_segment_net(path: str | Path) -> tuple[SegmentNet, dict]:
-    """A trained SegmentNet in eval mode and its JSON record; raises WeightsError naming the file,
-    key and shapes."""
+def load_segment_net(path: str | Path, device: str | torch.device = "cpu") -> tuple[SegmentNet, dict]:
+    """A trained SegmentNet on `device` in eval mode and its JSON record; raises WeightsError naming
+    the file, key and shapes."""
     return load_model(
-        path, "segment net", lambda config, source: SegmentNet(SegmentNetConfig.from_dict(config, source))
+        path, "segment net", lambda config, source: SegmentNet(SegmentNetConfig.from_dict(config, source)), device
     )

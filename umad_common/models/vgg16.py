@@ -57,7 +57,7 @@ def tapped_levels(features: nn.Sequential, x: torch.Tensor, taps: Iterable[int])
     return out
 
 
-def load_vgg16_features(path: str | Path) -> tuple[Vgg16Features, dict]:
-    """Vgg16Features with weights from a torchvision-format VGG16 state dict file, in eval mode, and
-    its record: `{}`, an upstream file has none."""
-    return load_upstream_tensors(Vgg16Features(), path).eval().requires_grad_(False), {}
+def load_vgg16_features(path: str | Path, device: str | torch.device = "cpu") -> tuple[Vgg16Features, dict]:
+    """Vgg16Features with weights from a torchvision-format VGG16 state dict file, on `device` in eval
+    mode, and its record: `{}`, an upstream file has none."""
+    return load_upstream_tensors(Vgg16Features(), path, device).eval().requires_grad_(False), {}

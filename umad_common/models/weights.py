@@ -2,7 +2,9 @@
 training record), and the one error every loader raises for a file that cannot be used.
 
 Every loader returns `(model, record)`: the model in eval mode and the JSON record (`{}` for a file
-in its upstream format, such as a torchvision VGG16 state dict, which has no record beside it)."""
+in its upstream format, such as a torchvision VGG16 state dict, which has no record beside it). A
+loader's `device` (default the CPU) is where the tensors are read to and the model is put; weights
+are always saved from the CPU, so a file written on a GPU machine loads anywhere."""
 
 from __future__ import annotations
 
@@ -70,9 +72,11 @@ def read_record(path: str | Path, what: str) -> dict:
     return record
 
 
-def load_model(path: str | Path, what: str, build: Callable[[dict, str], M]) -> tuple[M, dict]:
-    """A model from NAME.safetensors + NAME.json, in eval mode without gradients, and its record.
-    `build(config, source)` makes the model from the record's config; a config it cannot take
+def load_model(
+    path: str | Path, what: str, build: Callable[[dict, str], M], device: str | torch.device = "cpu"
+) -> tuple[M, dict]:
+    """A model from NAME.safetensors + NAME.json on `device`, in eval mode without gradients, and its
+    record. `build(config, source)` makes the model from the record's config; a config it cannot take
     (ValueError, KeyError or TypeError) becomes a WeightsError naming the JSON file."""
     record = read_record(path, what)
     source = str(weight_paths(path)[1])
@@ -82,14 +86,16 @@ def load_model(path: str | Path, what: str, build: Callable[[dict, str], M]) -> 
         raise
     except (ValueError, KeyError, TypeError) as exc:
         raise WeightsError(f"{source}: not a {what} config ({exc})") from None
-    return load_tensors(model, path).eval().requires_grad_(False), record
+    return load_tensors(model, path, device).eval().requires_grad_(False), record
 
 
-def load_tensors(model: nn.Module, path: str | Path) -> nn.Module:
-    """Fill `model` from the safetensors file, checking every tensor's name and shape first."""
+def load_tensors(model: nn.Module, path: str | Path, device: str | torch.device = "cpu") -> nn.Module:
+    """Fill `model` from the safetensors file, read straight to `device`, checking every tensor's name
+    and shape first; the model is moved to `device`."""
     weights, meta = weight_paths(path)
+    device = torch.device(device)
     try:
-        tensors = load_file(str(weights))
+        tensors = load_file(str(weights), device=str(device))
     except Exception as exc:  # safetensors raises its own error types for corrupt files
         raise WeightsError(f"{weights}: cannot read safetensors file ({exc})") from None
     expected = model.state_dict()
@@ -104,14 +110,14 @@ def load_tensors(model: nn.Module, path: str | Path) -> nn.Module:
                 f"{weights}: tensor {name!r} has shape {tuple(tensors[name].shape)}; "
                 f"expected {tuple(tensor.shape)} for config {meta.name}"
             )
-    model.load_state_dict(tensors)
+    model.to(device).load_state_dict(tensors)
     return model
 
 
-def load_upstream_tensors(model: nn.Module, path: str | Path) -> nn.Module:
+def load_upstream_tensors(model: nn.Module, path: str | Path, device: str | torch.device = "cpu") -> nn.Module:
     """Fill `model` from a file in its upstream format: a `.safetensors` file or a `torch.save`d
     state dict (loaded with weights_only=True, never pickle); keys and shapes checked, other keys
-    (a classifier the model does not have) ignored."""
+    (a classifier the model does not have) ignored. The model ends on `device`."""
     path = Path(path)
     if not path.is_file():
         raise WeightsError(f"{path}: weight file not found")
@@ -134,5 +140,5 @@ def load_upstream_tensors(model: nn.Module, path: str | Path) -> nn.Module:
         if not isinstance(got, torch.Tensor) or tuple(got.shape) != tuple(want.shape):
             got_shape = tuple(got.shape) if isinstance(got, torch.Tensor) else type(got).__name__
             raise WeightsError(f"{path}: layer {key!r} expected shape {tuple(want.shape)}, got {got_shape}")
-    model.load_state_dict({key: state[key].float() for key in expected}, strict=True)
+    model.to(device).load_state_dict({key: state[key].float() for key in expected}, strict=True)
     return model

@@ -514,6 +514,6 @@ def save_world_model(model: WorldModel, path: str | Path, record: dict | None = 
     return save_weights(model, path, model.config.to_dict(), record)
 
 
-def load_world_model(path: str | Path) -> tuple[WorldModel, dict]:
-    """Load MODEL.safetensors + MODEL.json; returns the model (eval mode) and the JSON record."""
-    return load_model(path, "world model", lambda config, _: WorldModel(WorldModelConfig.from_dict(config)))
+def load_world_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[WorldModel, dict]:
+    """Load MODEL.safetensors + MODEL.json; returns the model (on `device`, eval mode) and the JSON record."""
+    return load_model(path, "world model", lambda config, _: WorldModel(WorldModelConfig.from_dict(config)), device)

@@ -1,0 +1,61 @@
+"""Where a model runs: the one place a device name ("auto", "cpu", "cuda", "cuda:N") becomes a
+torch device, for every `umad train` verb (`--device`) and every torch operator (`device`).
+
+"auto" is CUDA when torch sees a GPU, else the CPU. Models load, run and train there; what they hand
+back (numpy arrays, saved weights) is always on the CPU. Torch is imported when a name is resolved,
+not here, so a graph's parameters can be checked without it.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import TYPE_CHECKING, Annotated, Any
+
+from pydantic import AfterValidator, Field
+
+if TYPE_CHECKING:
+    import torch
+
+DEVICE_PATTERN = re.compile(r"auto|cpu|cuda(:\d+)?")
+DEVICE_HELP = "auto (CUDA when present, else the CPU), cpu, cuda or cuda:N"
+
+
+def check_device_name(name: str) -> str:
+    """`name` unchanged when it is a device name; a ValueError naming it and the names expected otherwise."""
+    if not isinstance(name, str) or not DEVICE_PATTERN.fullmatch(name):
+        raise ValueError(f"device {name!r}: expected {DEVICE_HELP}")
+    return name
+
+
+def device_field(default: str = "auto") -> Any:
+    """The `device` parameter of a torch operator or segmenter method."""
+    return Field(default, description=f"torch device of the network: {DEVICE_HELP}; results come back to the CPU")
+
+
+DeviceName = Annotated[str, AfterValidator(check_device_name)]
+
+
+def resolve_device(name: str) -> torch.device:
+    """ "auto" -> cuda when torch sees a GPU, else cpu; "cpu", "cuda" and "cuda:N" as named.
+
+    Raises:
+        ValueError: `name` is not a device name, or it asks for CUDA (or a GPU index) this machine
+            does not have; the message says what is available.
+    """
+    import torch
+
+    check_device_name(name)
+    available = torch.cuda.is_available()
+    if name == "auto":
+        return torch.device("cuda" if available else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if available else 0
+        if count == 0:
+            raise ValueError(
+                f"device {name!r}: torch {torch.__version__} sees no CUDA device here (a CPU build or no GPU); "
+                "expected 'cpu' or 'auto'"
+            )
+        if device.index is not None and device.index >= count:
+            raise ValueError(f"device {name!r}: this machine has {count} CUDA device(s), cuda:0..cuda:{count - 1}")
+    return device
