@@ -25,6 +25,7 @@ from umad_common.differences import (
     load_calibration,
     minmax,
 )
+from umad_common.models.device import DeviceName, device_field
 
 FRAME_ARRAYS = ("target", "recon", "preds", "pred_valid")
 
@@ -63,6 +64,7 @@ class Difference(Operator):
         threads: int = Field(
             1, ge=1, le=64, description="torch CPU threads of this replica (the perceptual metric's network)"
         )
+        device: DeviceName = device_field()
 
     def __init__(self, params: BaseModel | dict | None = None, context: Context | None = None):
         super().__init__(params, context)
@@ -78,6 +80,7 @@ class Difference(Operator):
             vgg_weights=self.context.resolve(params.vgg_weights) if params.vgg_weights else None,
             features=self.context.resolve(params.features),
             threads=params.threads,
+            device=params.device,
         )
         metric: DifferenceMetric = build_metric(params.metric, options)
         scale = None

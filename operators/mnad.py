@@ -12,6 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from umad_common import ASSETS
 from umad_common.dataflow import Frame, Input, Operator, Output, input_array
+from umad_common.models.device import DeviceName, device_field, resolve_device
 
 SHIPPED_WEIGHTS = ASSETS / "mnad.safetensors"
 
@@ -25,6 +26,7 @@ class MnadParams(BaseModel):
         "absolute; default: the checkpoint shipped for the built-in world (umad_common/assets/mnad.safetensors)",
     )
     threads: int = Field(default=1, ge=1, description="torch CPU threads of this operator process")
+    device: DeviceName = device_field()
 
 
 class MnadPredictor(Operator):
@@ -42,16 +44,21 @@ class MnadPredictor(Operator):
         from umad_common.models.mnad import load_mnad
 
         torch.set_num_threads(self.params.threads)
+        self.device = resolve_device(self.params.device)
         path = SHIPPED_WEIGHTS if self.params.weights is None else self.context.resolve(self.params.weights)
-        self.model, record = load_mnad(path)  # raises WeightsError naming the file
+        self.model, record = load_mnad(path, self.device)  # raises WeightsError naming the file
         self.weights_name = path.name
         self.trained_on = record.get("training", {}).get("data")
+
+    def update_params(self, params: BaseModel) -> None:
+        if params.device != self.params.device:
+            raise ValueError("mnad: `device` cannot change at runtime; restart the operator on the new device")
+        super().update_params(params)
 
     def process(self, frame: Frame) -> dict[str, Output]:
         from umad_common.models.mnad import to_input
 
-        x = to_input(
-            input_array(frame, "camera", "rgb", self.kind), self.model.cfg
-        )  # raises on a non-(H, W, 3) uint8 image
-        score_map = self.model.anomaly_map(x)[0].numpy().astype("float32")
+        rgb = input_array(frame, "camera", "rgb", self.kind)
+        x = to_input(rgb, self.model.cfg).to(self.device)  # raises on a non-(H, W, 3) uint8 image
+        score_map = self.model.anomaly_map(x)[0].cpu().numpy().astype("float32")
         return {"map": Output({"map": score_map}, {"model": "mnad", "score": "l2", "weights": self.weights_name})}

@@ -26,6 +26,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from umad_common.dataflow import Frame, Input, Operator, Output, input_array
+from umad_common.models.device import DeviceName, device_field, resolve_device
 
 if TYPE_CHECKING:
     import torch
@@ -50,6 +51,7 @@ class WorldModelParams(BaseModel):
         "a reconstruction from the last step's state and no predictions",
     )
     threads: int = Field(default=1, ge=1, description="torch CPU threads of this process")
+    device: DeviceName = device_field()
 
 
 class WorldModelPredictor(Operator):
@@ -69,8 +71,9 @@ class WorldModelPredictor(Operator):
 
         self.torch, self.wm = torch, world_model
         torch.set_num_threads(self.params.threads)
+        self.device = resolve_device(self.params.device)
         self.model_path = self.context.resolve(self.params.model)
-        self.model, _ = world_model.load_world_model(self.model_path)
+        self.model, _ = world_model.load_world_model(self.model_path, self.device)
         self.config = self.model.config
         self.trained_frame_step = int(self.config.frame_step)
         self.run: str | None = None
@@ -81,12 +84,14 @@ class WorldModelPredictor(Operator):
         self.state: State = self.model.initial_state(1)
         self.rollouts: list[tuple[State, torch.Tensor]] = []  # prior rollouts advanced to the last step and
         #   the speed of the frame each started from; [i-1] started i steps before it
-        self.pending_action = self.torch.zeros(1, 2)
+        self.pending_action = self.torch.zeros(1, 2, device=self.device)
         self.steps = 0
 
     def update_params(self, params: BaseModel) -> None:
         if params.model != self.params.model:
             raise ValueError("world_model: `model` cannot change at runtime; restart the operator with the new weights")
+        if params.device != self.params.device:
+            raise ValueError("world_model: `device` cannot change at runtime; restart the operator on the new device")
         horizon_changed = params.horizon != self.params.horizon
         super().update_params(params)
         self.torch.set_num_threads(params.threads)
@@ -94,7 +99,8 @@ class WorldModelPredictor(Operator):
             self.rollouts = self.rollouts[: params.horizon]
 
     def observation(self, frame: Frame) -> tuple[Observation, np.ndarray, np.ndarray]:
-        """Model inputs (B = T = 1), the target (h, w, 3) float32 and the action (2,) of this frame."""
+        """Model inputs (B = T = 1) on the model's device, the target (h, w, 3) float32 and the action
+        (2,) of this frame."""
         c, wm, torch = self.config, self.wm, self.torch
         rgb = wm.resize_rgb(np.asarray(input_array(frame, "camera", "rgb", self.kind), np.uint8), c)
         ego = np.asarray(input_array(frame, "ego", "ego", self.kind), np.float32).reshape(-1)
@@ -111,7 +117,7 @@ class WorldModelPredictor(Operator):
             route=torch.from_numpy(route.astype(np.float32) / 255.0)[None, None, None],
             speed=torch.tensor([[[ego[0] / c.speed_scale]]]),
         )
-        return obs, target, wm.action_of(ego[1], ego[2], ego[3])
+        return obs.to(self.device), target, wm.action_of(ego[1], ego[2], ego[3])
 
     def process(self, frame: Frame) -> dict[str, Output]:
         with self.torch.no_grad():
@@ -142,16 +148,16 @@ class WorldModelPredictor(Operator):
             if scored:
                 batch = [posterior, *(state for state, _ in advanced)]
                 states = State(torch.cat([s.h for s in batch]), torch.cat([s.z for s in batch]))
-                images = self.model.decode(states).permute(0, 2, 3, 1).numpy()
+                images = self.model.decode(states).permute(0, 2, 3, 1).cpu().numpy()
                 recon = images[0]
                 preds[: len(advanced)] = images[1:]
                 valid[: len(advanced)] = 1
             self.state = posterior
             self.rollouts = [(posterior, obs.speed.reshape(1)), *advanced][:n]
-            self.pending_action = torch.from_numpy(action)[None]
+            self.pending_action = torch.from_numpy(action)[None].to(self.device)
             self.steps += 1
         elif scored:
-            recon = self.model.decode(posterior)[0].permute(1, 2, 0).numpy()
+            recon = self.model.decode(posterior)[0].permute(1, 2, 0).cpu().numpy()
         meta = {
             "model": self.model_path.name,
             "model_step": bool(model_step),

@@ -24,12 +24,13 @@ class DifferenceInputError(ValueError):
 
 @dataclass(frozen=True)
 class MetricOptions:
-    """What a metric may need beyond the frame: weight files (already resolved to absolute paths) and
-    the CPU threads a metric that runs a network may use."""
+    """What a metric may need beyond the frame: weight files (already resolved to absolute paths), and
+    the CPU threads and the device (`umad_common.models.device`) of a metric that runs a network."""
 
     vgg_weights: Path | None = None
     features: Path | None = None
     threads: int = 1
+    device: str = "cpu"
 
 
 def validate_frame(target: np.ndarray, recon: np.ndarray, preds: np.ndarray, pred_valid: np.ndarray) -> tuple[int, int]:

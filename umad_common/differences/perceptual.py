@@ -8,6 +8,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from umad_common.differences.metrics import DifferenceInputError, DifferenceMetric, MetricOptions
+from umad_common.models.device import resolve_device
 
 
 class PerceptualDifference(DifferenceMetric):
@@ -21,24 +22,26 @@ class PerceptualDifference(DifferenceMetric):
 
     name = "perceptual"
 
-    def __init__(self, extractor: nn.Module, extractor_name: str) -> None:
-        self.extractor = extractor.eval().requires_grad_(False)
+    def __init__(self, extractor: nn.Module, extractor_name: str, device: torch.device | str = "cpu") -> None:
+        self.device = torch.device(device)  # where the net runs; the map comes back to the CPU
+        self.extractor = extractor.to(self.device).eval().requires_grad_(False)
         self.extractor_name = extractor_name
 
     @classmethod
     def from_options(cls, options: MetricOptions) -> PerceptualDifference:
         torch.set_num_threads(options.threads)
+        device = resolve_device(options.device)
         if options.vgg_weights is not None:
             from umad_common.models.vgg16 import load_vgg16_features
 
-            return cls(load_vgg16_features(options.vgg_weights)[0], "vgg16")
+            return cls(load_vgg16_features(options.vgg_weights, device)[0], "vgg16", device)
         if options.features is None:
             raise DifferenceInputError(
                 "perceptual: needs `vgg_weights` or `features` (a feature net file); got neither"
             )
         from umad_common.models.feature_net import load_feature_net
 
-        return cls(load_feature_net(options.features)[0], "feature_net")
+        return cls(load_feature_net(options.features, device)[0], "feature_net", device)
 
     @property
     def calibration_key(self) -> str:
@@ -47,15 +50,15 @@ class PerceptualDifference(DifferenceMetric):
 
     def compute(self, target, recon, preds, pred_valid):
         h, w = target.shape[:2]
-        pair = torch.from_numpy(np.stack([target, recon]).transpose(0, 3, 1, 2).copy())  # (2, 3, h, w)
+        pair = torch.from_numpy(np.stack([target, recon]).transpose(0, 3, 1, 2).copy()).to(self.device)  # (2, 3, h, w)
         with torch.inference_mode():
-            total = torch.zeros(1, 1, h, w)
+            total = torch.zeros(1, 1, h, w, device=self.device)
             for level in self.extractor(pair):
                 dist = (level[0] - level[1]).abs().mean(dim=0, keepdim=True)[None]  # (1, 1, h_l, w_l)
                 if dist.shape[-2:] != (h, w):
                     dist = F.interpolate(dist, size=(h, w), mode="bilinear", align_corners=False)
                 total += dist
-        return total[0, 0].numpy()
+        return total[0, 0].cpu().numpy()
 
     def notes(self, pred_valid: np.ndarray) -> dict:
         return {"extractor": self.extractor_name}

@@ -331,6 +331,10 @@ class Observation(NamedTuple):
     route: torch.Tensor  # (B, T, 1, R, R) float in [0, 1]
     speed: torch.Tensor  # (B, T, 1) speed_mps / speed_scale
 
+    def to(self, device: torch.device | str) -> Observation:
+        """The same observation with every tensor on `device` (no copy where it is there already)."""
+        return Observation(*(tensor.to(device) for tensor in self))
+
 
 class State(NamedTuple):
     h: torch.Tensor  # (..., deter_dim) deterministic map, (deter_channels, rows, cols) flattened

@@ -15,6 +15,7 @@ from skimage.segmentation import felzenszwalb, slic
 from threadpoolctl import threadpool_limits
 
 from umad_common.dataflow import Context, Frame
+from umad_common.models.device import DeviceName, device_field, resolve_device
 from umad_common.segmentation.base import (
     TUNED,
     SegmenterMethod,
@@ -86,13 +87,14 @@ class FeatureNetFeatures:
 
     LEVELS = 2  # full and half resolution: the finer levels carry object boundaries
 
-    def __init__(self, weights: Path, weight: float, position_weight: float):
+    def __init__(self, weights: Path, weight: float, position_weight: float, device: str = "cpu"):
         import torch
 
         from umad_common.models.feature_net import load_feature_net
 
         self.torch = torch
-        self.net, _ = load_feature_net(weights)
+        self.device = resolve_device(device)
+        self.net, _ = load_feature_net(weights, self.device)
         self.weight = weight
         self.position_weight = position_weight
 
@@ -101,9 +103,9 @@ class FeatureNetFeatures:
         h, w = image.shape[:2]
         with torch.inference_mode():
             batch = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None]  # (1, 3, h, w)
-            levels = self.net(batch)[: self.LEVELS]
+            levels = self.net(batch.to(self.device))[: self.LEVELS]
             upsampled = [torch.nn.functional.interpolate(x, size=(h, w), mode="bilinear") for x in levels]
-            features = torch.cat(upsampled, dim=1)[0].permute(1, 2, 0).numpy()  # (h, w, C)
+            features = torch.cat(upsampled, dim=1)[0].permute(1, 2, 0).cpu().numpy()  # (h, w, C)
         flat = features.reshape(-1, features.shape[-1]).astype(np.float64)
         flat = (flat - flat.mean(axis=0)) / (flat.std(axis=0) + 1e-6) / np.sqrt(flat.shape[1])
         ys, xs = np.meshgrid(np.linspace(0, 1, h), np.linspace(0, 1, w), indexing="ij")
@@ -165,6 +167,7 @@ class KMeansSegments(SegmenterMethod):
         )
         fit_stride: int = Field(3, ge=1, description="fit centroids on every n-th pixel per direction, then assign all")
         min_area: int = Field(8, ge=1, description="connected regions smaller than this get no mask (px)")
+        device: DeviceName = device_field()
 
     def __init__(self, params: BaseModel, context: Context):
         super().__init__(params, context)
@@ -176,7 +179,9 @@ class KMeansSegments(SegmenterMethod):
                 raise ValueError(
                     "segmenter method 'kmeans' with features 'feature_net' needs option feature_net (a file)"
                 )
-            self.net_features = FeatureNetFeatures(context.resolve(p.feature_net), p.feature_weight, p.position_weight)
+            self.net_features = FeatureNetFeatures(
+                context.resolve(p.feature_net), p.feature_weight, p.position_weight, p.device
+            )
 
     def __call__(self, image: np.ndarray, frame: Frame) -> np.ndarray:
         p = self.params

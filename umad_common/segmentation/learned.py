@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
 from umad_common.dataflow import Context, Frame
+from umad_common.models.device import DeviceName, device_field, resolve_device
 from umad_common.segmentation.base import TUNED, SegmenterMethod, connected_regions, labels_to_masks
 from umad_common.segmentation.geometry import Geometry
 
@@ -50,6 +51,7 @@ class Learned(SegmenterMethod):
         min_area: int = Field(
             48, ge=1, description=f"regions smaller than this (px) join their nearest neighbour; {TUNED}"
         )
+        device: DeviceName = device_field()
 
     def __init__(self, params: BaseModel, context: Context):
         super().__init__(params, context)
@@ -58,12 +60,13 @@ class Learned(SegmenterMethod):
         from umad_common.models.segment_net import load_segment_net
 
         self.torch = torch
-        self.net, _ = load_segment_net(context.resolve(self.params.weights))
+        self.device = resolve_device(self.params.device)
+        self.net, _ = load_segment_net(context.resolve(self.params.weights), self.device)
 
     def __call__(self, image: np.ndarray, frame: Frame) -> np.ndarray:
         torch = self.torch
         batch = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None]  # (1, 3, h, w)
-        clusters = self.net.cluster_ids(batch)[0].numpy()  # (h, w)
+        clusters = self.net.cluster_ids(batch.to(self.device))[0].cpu().numpy()  # (h, w)
         regions = merge_small_regions(connected_regions(clusters), self.params.min_area)
         return labels_to_masks(regions)
 

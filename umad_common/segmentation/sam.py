@@ -12,6 +12,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from umad_common.dataflow import Context, Frame
+from umad_common.models.device import DeviceName, device_field, resolve_device
 from umad_common.segmentation.base import SegmenterMethod
 
 
@@ -34,7 +35,7 @@ class Sam(SegmenterMethod):
         pred_iou_thresh: float = Field(0.88, ge=0, le=1, description="drop masks whose predicted IoU is below")
         stability_score_thresh: float = Field(0.95, ge=0, le=1, description="drop masks less stable than this")
         min_mask_region_area: int = Field(0, ge=0, description="remove holes and islands below this (px); 0 = off")
-        device: str = Field("cpu", description="torch device, e.g. cpu or cuda")
+        device: DeviceName = device_field()
 
     def __init__(self, params: BaseModel, context: Context):
         super().__init__(params, context)
@@ -56,18 +57,19 @@ class Sam(SegmenterMethod):
                 f"failed ({exc}); build its environment with `.ci/sam_env.sh` and run this operator there with "
                 "the graph field `python: .venv-sam/bin/python`"
             ) from exc
+        device = resolve_device(p.device)
         if checkpoint.suffix == ".safetensors":
             from safetensors.torch import load_file
 
-            state = load_file(str(checkpoint), device=p.device)
+            state = load_file(str(checkpoint), device=str(device))
         else:
-            state = torch.load(checkpoint, map_location=p.device, weights_only=True)
+            state = torch.load(checkpoint, map_location=device, weights_only=True)
         model = sam_model_registry[p.model](checkpoint=None)
         try:
             model.load_state_dict(state)
         except RuntimeError as exc:
             raise ValueError(f"segmenter: {checkpoint} is not a {p.model} SAM checkpoint: {exc}") from None
-        model.to(p.device).eval()
+        model.to(device).eval()
         self.torch = torch
         self.generator = SamAutomaticMaskGenerator(
             model,
