@@ -423,8 +423,9 @@ def test_train_features_command_reads_only_training_rgb(tmp_path):
     write_generator_scenario(normal, "Scenario_b", 2, seed=1)
     out = tmp_path / "features.safetensors"
     args = argparse.Namespace(
-        data=tmp_path / "bench", out=out, epochs=1, seed=0, frames=100, batch_size=2, holdout=1, threads=1
+        data=tmp_path / "bench", out=out, epochs=1, seed=0, frames=100, batch_size=2, holdout=1, threads=1, device="cpu"
     )
     assert train_features.run(args) == 0
     _, record = load_feature_net(out)
     assert record["training"]["frames"] == 4 and record["training"]["heldout_drives"] == ["Scenario_b"]
+    assert record["training"]["device"] == "cpu"

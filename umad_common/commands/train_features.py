@@ -6,6 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from umad_common.commands.common import add_device_argument, resolve_device_or_exit
+
 log = logging.getLogger("umad.train.features")
 
 
@@ -26,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--holdout", type=int, default=1, help="last N normal drives left out, as the world model (default 1)"
     )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    add_device_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,11 +43,12 @@ def run(args: argparse.Namespace) -> int:
     if args.epochs < 1 or args.frames < 1 or args.batch_size < 2 or args.holdout < 0:
         raise SystemExit("--epochs and --frames must be >= 1, --batch-size >= 2, --holdout >= 0")
     torch.set_num_threads(args.threads)
+    device = resolve_device_or_exit(args.device)
     cfg = FeatureTrainingConfig(
         epochs=args.epochs, seed=args.seed, max_frames=args.frames, batch_size=args.batch_size, holdout=args.holdout
     )
     frames, heldout = load_normal_rgb(args.data, cfg)
-    model, record = train_feature_net(frames, cfg, data_name=recorded_path(args.data), heldout=heldout)
+    model, record = train_feature_net(frames, cfg, data_name=recorded_path(args.data), heldout=heldout, device=device)
     save_feature_net(model, args.out, record)
     log.info("wrote %s (+ %s), %s", args.out, args.out.with_suffix(".json").name, record["training"])
     return 0

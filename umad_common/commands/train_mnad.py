@@ -6,6 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from umad_common.commands.common import add_device_argument, resolve_device_or_exit
+
 log = logging.getLogger("umad.train.mnad")
 
 
@@ -29,6 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--batch-size", type=int, default=8, help="frames per step (default 8)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    add_device_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -42,12 +45,13 @@ def run(args: argparse.Namespace) -> int:
     if args.epochs < 1 or args.frames < 2 or args.batch_size < 2 or (args.minutes is not None and args.minutes <= 0):
         raise SystemExit("--epochs must be >= 1, --minutes > 0, --frames and --batch-size >= 2")
     torch.set_num_threads(args.threads)
+    device = resolve_device_or_exit(args.device)
     train_cfg = MnadTrainingConfig(
         epochs=args.epochs, seed=args.seed, batch_size=args.batch_size, max_frames=args.frames, minutes=args.minutes
     )
     model_cfg = MnadConfig()
     frames = load_normal_frames(args.data, model_cfg, train_cfg.max_frames)
-    model, record = train_mnad(frames, train_cfg, model_cfg)
+    model, record = train_mnad(frames, train_cfg, model_cfg, device=device)
     record["training"]["data"] = str(args.data)
     save_mnad(model, args.out, record)
     log.info("wrote %s (+ %s) after %s s", args.out, args.out.with_suffix(".json").name, record["training"]["seconds"])

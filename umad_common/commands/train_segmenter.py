@@ -14,6 +14,8 @@ import os
 import shlex
 from pathlib import Path
 
+from umad_common.commands.common import add_device_argument, resolve_device_or_exit
+
 log = logging.getLogger("umad.train.segmenter")
 
 
@@ -32,6 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=None, help="frames per step (default 8)")
     parser.add_argument("--clusters", type=int, default=None, help="prototypes, i.e. segment classes (default 24)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (results depend on it)")
+    add_device_argument(parser)
 
 
 FLAGS = {"epochs": "epochs", "seed": "seed", "frames": "max_frames", "batch_size": "batch_size"}  # flag -> field
@@ -59,7 +62,8 @@ def command_line(args: argparse.Namespace) -> str:
     for flag in (*FLAGS, "clusters"):
         if getattr(args, flag) is not None:
             words += ["--" + flag.replace("_", "-"), str(getattr(args, flag))]
-    return shlex.join([*words, "--threads", str(args.threads)])
+    words += ["--threads", str(args.threads)] + (["--device", args.device] if args.device != "auto" else [])
+    return shlex.join(words)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -75,8 +79,9 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"--out {args.out}: expected a .safetensors file name")
     net_cfg, train_cfg = configs_of(args)
     torch.set_num_threads(args.threads)
+    device = resolve_device_or_exit(args.device)
     frames, heldout = load_normal_rgb(args.data, train_cfg)
-    model, record = train_segment_net(frames, train_cfg, net_cfg)
+    model, record = train_segment_net(frames, train_cfg, net_cfg, device)
     record = {"command": command_line(args), "data": str(args.data), "heldout_drives": heldout} | record
     save_segment_net(model, args.out, {"training": record})
     log.info("wrote %s (+ %s) after %s s", args.out, args.out.with_suffix(".json").name, record["seconds"])

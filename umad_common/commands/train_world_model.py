@@ -17,6 +17,8 @@ import shlex
 from dataclasses import asdict
 from pathlib import Path
 
+from umad_common.commands.common import add_device_argument, resolve_device_or_exit
+
 DEFAULT_EPOCHS = 35
 
 
@@ -46,6 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--holdout", type=int, default=None, help="last N normal drives kept out for evaluation (default 1)"
     )
     parser.add_argument("--frame-step", type=int, default=None, help="dataset frames per model step (default 1)")
+    add_device_argument(parser)
 
 
 def configs_of(args: argparse.Namespace):
@@ -86,7 +89,8 @@ def command_line(args: argparse.Namespace) -> str:
     for flag in ("config", "epochs", "seed", "batch_size", "sequence_length", "holdout", "frame_step"):
         if getattr(args, flag) is not None:
             words += ["--" + flag.replace("_", "-"), str(getattr(args, flag))]
-    words += ["--threads", str(args.threads)] + (["--resume"] if args.resume else [])
+    words += ["--threads", str(args.threads)] + (["--device", args.device] if args.device != "auto" else [])
+    words += ["--resume"] if args.resume else []
     return shlex.join(words)
 
 
@@ -97,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
     from umad_common.training.train_world_model import train_world_model
 
     model_config, train, epochs, seed = configs_of(args)
+    device = resolve_device_or_exit(args.device)
     record = train_world_model(
         args.data,
         args.out,
@@ -107,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
         model_config=model_config,
         train_config=train,
         command=command_line(args),
+        device=device,
     )
     last = record["history"][-1]
     summary = {k: round(v, 5) if isinstance(v, float) else v for k, v in last.items()}

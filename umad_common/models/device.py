@@ -59,3 +59,13 @@ def resolve_device(name: str) -> torch.device:
         if device.index is not None and device.index >= count:
             raise ValueError(f"device {name!r}: this machine has {count} CUDA device(s), cuda:0..cuda:{count - 1}")
     return device
+
+
+def bf16_supported(device: torch.device) -> bool:
+    """Whether bfloat16 autocast is fast and exact enough to train in on `device`: a GPU with bfloat16
+    (Ampere and later), or a CPU with oneDNN's bfloat16 kernels (AVX-512 BF16 / AMX)."""
+    import torch
+
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    return torch.ops.mkldnn._is_mkldnn_bf16_supported()

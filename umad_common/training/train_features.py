@@ -78,7 +78,7 @@ def load_normal_rgb(data: Path, cfg: FeatureTrainingConfig) -> tuple[np.ndarray,
 def gaussian_blur(x: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
     """Blur each image of (B, 3, h, w) with its own sigma (B,); sigma 0 leaves it unchanged."""
     radius = 4
-    taps = torch.arange(-radius, radius + 1, dtype=x.dtype)
+    taps = torch.arange(-radius, radius + 1, dtype=x.dtype, device=x.device)
     kernel = torch.exp(-0.5 * (taps[None] / sigma.clamp_min(1e-3)[:, None]) ** 2)  # (B, 9)
     kernel = kernel / kernel.sum(dim=1, keepdim=True)
     b, c, h, w = x.shape
@@ -90,11 +90,12 @@ def gaussian_blur(x: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
 
 
 def photometric_view(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
-    """A view that differs the way a reconstruction does: blur, colour jitter, noise. (B,3,h,w)."""
+    """A view that differs the way a reconstruction does: blur, colour jitter, noise. (B,3,h,w).
+    The random numbers come from `gen` on the CPU, whatever device `x` is on."""
     b = x.shape[0]
 
     def uniform(lo: float, hi: float, *shape: int) -> torch.Tensor:
-        return lo + (hi - lo) * torch.rand(b, *shape, generator=gen)
+        return (lo + (hi - lo) * torch.rand(b, *shape, generator=gen)).to(x.device)
 
     x = gaussian_blur(x, uniform(0.0, 1.6))
     gray = x.mean(dim=1, keepdim=True)
@@ -102,7 +103,7 @@ def photometric_view(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     mean = x.mean(dim=(1, 2, 3), keepdim=True)
     x = mean + (x - mean) * uniform(0.8, 1.2, 1, 1, 1) + uniform(-0.08, 0.08, 1, 1, 1)  # contrast, brightness
     x = x * uniform(0.95, 1.05, 3, 1, 1)  # white balance
-    x = x + torch.randn(x.shape, generator=gen) * uniform(0.0, 0.03, 1, 1, 1)
+    x = x + torch.randn(x.shape, generator=gen).to(x.device) * uniform(0.0, 0.03, 1, 1, 1)
     return x.clamp(0.0, 1.0)
 
 
@@ -143,20 +144,26 @@ def dense_vicreg_loss(
 
 
 def train_feature_net(
-    frames: np.ndarray, cfg: FeatureTrainingConfig, data_name: str = "", heldout: list[str] | None = None
+    frames: np.ndarray,
+    cfg: FeatureTrainingConfig,
+    data_name: str = "",
+    heldout: list[str] | None = None,
+    device: str | torch.device = "cpu",
 ) -> tuple[FeatureNet, dict]:
-    """Train on (N, h, w, 3) uint8 normal frames; deterministic for a given seed and thread count.
-    Returns the model and its record (`{"training": {...}}`, for `save_feature_net`)."""
+    """Train on (N, h, w, 3) uint8 normal frames on `device`; on the CPU deterministic for a given seed
+    and thread count (a GPU lacks deterministic kernels for some steps: close, not equal). Returns the
+    model on the CPU and its record (`{"training": {...}}`, for `save_feature_net`)."""
+    device = torch.device(device)
     was_deterministic = torch.are_deterministic_algorithms_enabled()
-    torch.use_deterministic_algorithms(True)
+    torch.use_deterministic_algorithms(True, warn_only=device.type != "cpu")
     try:
-        return _train(frames, cfg, data_name, heldout or [])
+        return _train(frames, cfg, data_name, heldout or [], device)
     finally:
         torch.use_deterministic_algorithms(was_deterministic)
 
 
 def _train(
-    frames: np.ndarray, cfg: FeatureTrainingConfig, data_name: str, heldout: list[str]
+    frames: np.ndarray, cfg: FeatureTrainingConfig, data_name: str, heldout: list[str], device: torch.device
 ) -> tuple[FeatureNet, dict]:
     from tqdm import tqdm
 
@@ -167,7 +174,7 @@ def _train(
     mean = tuple(float(v) for v in pixels.mean(dim=(0, 2, 3)))
     std = tuple(float(v) for v in pixels.std(dim=(0, 2, 3)))
     del pixels
-    model = FeatureNet(FeatureNetConfig(mean=mean, std=std))
+    model = FeatureNet(FeatureNetConfig(mean=mean, std=std)).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
     steps_per_epoch = max(1, len(images) // cfg.batch_size)
     steps = cfg.epochs * steps_per_epoch
@@ -184,6 +191,7 @@ def _train(
             batch = images[index, :, top : top + ch, left : left + cw].float() / 255.0
             if bool(torch.rand(1, generator=gen) < 0.5):
                 batch = batch.flip(dims=(3,))
+            batch = batch.to(device)
             loss = dense_vicreg_loss(model(photometric_view(batch, gen)), model(photometric_view(batch, gen)), cfg, gen)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -206,5 +214,6 @@ def _train(
         "final_loss": round(float(loss.item()), 5),
         "seconds": round(time.monotonic() - started, 1),
         "threads": torch.get_num_threads(),
+        "device": str(device),
     }
-    return model.eval().requires_grad_(False), {"training": training}
+    return model.cpu().eval().requires_grad_(False), {"training": training}

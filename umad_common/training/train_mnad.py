@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from umad_common.models.device import bf16_supported
 from umad_common.models.mnad import Mnad, MnadConfig
 
 log = logging.getLogger("umad.train.mnad")
@@ -38,12 +39,12 @@ class MnadTrainingConfig:
     lr: float = 2e-4  # the paper's Adam learning rate, cosine-annealed to 0
     max_frames: int = 1200  # frames loaded, spread evenly over the normal scenarios
     minutes: float | None = None  # train for about this long: sets `epochs` from the measured step time
-    bf16: bool = True  # bfloat16 autocast where the CPU supports it
+    bf16: bool = True  # bfloat16 autocast where the CPU (or GPU) supports it
 
 
 def epochs_for_budget(frames: torch.Tensor, cfg: MnadTrainingConfig, model_cfg: MnadConfig, bf16: bool) -> int:
     """How many epochs fit in `cfg.minutes`: times 4 steps (after one warm-up) of a throwaway model."""
-    model = Mnad(model_cfg).train().to(memory_format=torch.channels_last)
+    model = Mnad(model_cfg).train().to(frames.device, memory_format=torch.channels_last)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     batch = frames[: cfg.batch_size]
     times = []
@@ -57,8 +58,9 @@ def epochs_for_budget(frames: torch.Tensor, cfg: MnadTrainingConfig, model_cfg: 
 
 
 def training_step(model: Mnad, optimizer: torch.optim.Optimizer, batch: torch.Tensor, bf16: bool) -> dict:
-    """One step: forward (autocast), float32 loss, backward, Adam, memory update; returns the loss parts."""
-    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+    """One step: forward (autocast on the batch's device), float32 loss, backward, Adam, memory update;
+    returns the loss parts."""
+    with torch.autocast(batch.device.type, dtype=torch.bfloat16, enabled=bf16):
         out = model(batch)
     out = out._replace(recon=out.recon.float(), query=out.query.float())
     loss, parts = model.loss(batch, out)
@@ -79,11 +81,13 @@ def train_mnad(
     train_cfg: MnadTrainingConfig,
     model_cfg: MnadConfig | None = None,
     progress: bool = True,
+    device: str | torch.device = "cpu",
 ) -> tuple[Mnad, dict]:
-    """Train MNAD on (N, h, w, 3) uint8 normal frames already at the model size.
+    """Train MNAD on (N, h, w, 3) uint8 normal frames already at the model size, on `device`.
 
     Returns:
-        the model in eval mode and a training record (losses, steps, seconds) for its JSON.
+        the model on the CPU in eval mode and a training record (losses, steps, seconds, device) for
+        its JSON.
 
     Raises:
         ValueError: frames of the wrong dtype/shape, or fewer frames than one batch.
@@ -96,24 +100,25 @@ def train_mnad(
         )
     if len(frames) < 2:
         raise ValueError(f"train_mnad: need at least 2 frames (batch norm), got {len(frames)}")
+    device = torch.device(device)
     was_deterministic = torch.are_deterministic_algorithms_enabled()
-    torch.use_deterministic_algorithms(True)
+    torch.use_deterministic_algorithms(True, warn_only=device.type != "cpu")
     try:
-        return _train(frames, train_cfg, model_cfg, progress)
+        return _train(frames, train_cfg, model_cfg, progress, device)
     finally:
         torch.use_deterministic_algorithms(was_deterministic)
 
 
 def _train(
-    frames: np.ndarray, train_cfg: MnadTrainingConfig, model_cfg: MnadConfig, progress: bool
+    frames: np.ndarray, train_cfg: MnadTrainingConfig, model_cfg: MnadConfig, progress: bool, device: torch.device
 ) -> tuple[Mnad, dict]:
-    data = frames_to_tensor(frames).contiguous(memory_format=torch.channels_last)
+    data = frames_to_tensor(frames).contiguous(memory_format=torch.channels_last).to(device)
     batch_size = min(train_cfg.batch_size, len(frames))
-    bf16 = train_cfg.bf16 and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    bf16 = train_cfg.bf16 and bf16_supported(device)
     epochs = train_cfg.epochs if train_cfg.minutes is None else epochs_for_budget(data, train_cfg, model_cfg, bf16)
     torch.manual_seed(train_cfg.seed)
     order_rng = np.random.default_rng(train_cfg.seed)
-    model = Mnad(model_cfg).train().to(memory_format=torch.channels_last)
+    model = Mnad(model_cfg).train().to(device, memory_format=torch.channels_last)
     steps_per_epoch = len(frames) // batch_size  # drop the ragged last batch: batch norm needs >= 2
     total_steps = steps_per_epoch * epochs
     optimizer = torch.optim.Adam(model.parameters(), lr=train_cfg.lr)
@@ -125,7 +130,7 @@ def _train(
         order = order_rng.permutation(len(frames))
         sums = {"reconstruction": 0.0, "compactness": 0.0, "separateness": 0.0}
         for step in range(steps_per_epoch):
-            batch = data[torch.from_numpy(order[step * batch_size : (step + 1) * batch_size])]
+            batch = data[torch.from_numpy(order[step * batch_size : (step + 1) * batch_size]).to(device)]
             parts = training_step(model, optimizer, batch, bf16)
             schedule.step()
             for key, value in parts.items():
@@ -150,10 +155,11 @@ def _train(
             "steps": total_steps,
             "seconds": round(time.perf_counter() - start, 1),
             "threads": torch.get_num_threads(),
+            "device": str(device),
             "losses_per_epoch": history,
         }
     }
-    return model.eval(), record
+    return model.cpu().eval(), record
 
 
 def load_normal_frames(data: Path, cfg: MnadConfig, max_frames: int) -> np.ndarray:

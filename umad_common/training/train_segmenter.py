@@ -108,25 +108,32 @@ def aligned_views(
 
 
 def train_segment_net(
-    frames: np.ndarray, cfg: SegmenterTrainingConfig, model_cfg: SegmentNetConfig | None = None
+    frames: np.ndarray,
+    cfg: SegmenterTrainingConfig,
+    model_cfg: SegmentNetConfig | None = None,
+    device: str | torch.device = "cpu",
 ) -> tuple[SegmentNet, dict]:
-    """Train on (N, h, w, 3) uint8 normal frames; deterministic for a given seed and thread count.
+    """Train on (N, h, w, 3) uint8 normal frames on `device`; on the CPU deterministic for a given seed
+    and thread count (a GPU lacks deterministic kernels for some steps: close, not equal).
 
-    Returns the net in eval mode and its training record (loss and seconds per epoch, total
-    seconds, the machine's load average while it ran)."""
+    Returns the net on the CPU in eval mode and its training record (loss and seconds per epoch,
+    total seconds, the device, the machine's load average while it ran)."""
     if frames.ndim != 4 or frames.shape[1:] != (*cfg.size, 3) or frames.dtype != np.uint8:
         raise ValueError(
             f"train_segment_net: expected (N, {cfg.size[0]}, {cfg.size[1]}, 3) uint8, got {frames.dtype} {frames.shape}"
         )
+    device = torch.device(device)
     was_deterministic = torch.are_deterministic_algorithms_enabled()
-    torch.use_deterministic_algorithms(True)
+    torch.use_deterministic_algorithms(True, warn_only=device.type != "cpu")
     try:
-        return _train(frames, cfg, model_cfg or SegmentNetConfig())
+        return _train(frames, cfg, model_cfg or SegmentNetConfig(), device)
     finally:
         torch.use_deterministic_algorithms(was_deterministic)
 
 
-def _train(frames: np.ndarray, cfg: SegmenterTrainingConfig, model_cfg: SegmentNetConfig) -> tuple[SegmentNet, dict]:
+def _train(
+    frames: np.ndarray, cfg: SegmenterTrainingConfig, model_cfg: SegmentNetConfig, device: torch.device
+) -> tuple[SegmentNet, dict]:
     from tqdm import tqdm
 
     torch.manual_seed(cfg.seed)
@@ -136,7 +143,7 @@ def _train(frames: np.ndarray, cfg: SegmenterTrainingConfig, model_cfg: SegmentN
     model_cfg.mean = tuple(float(v) for v in pixels.mean(dim=(0, 2, 3)))
     model_cfg.std = tuple(float(v) for v in pixels.std(dim=(0, 2, 3)))
     del pixels
-    model = SegmentNet(model_cfg)
+    model = SegmentNet(model_cfg).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
     steps_per_epoch = max(1, len(images) // cfg.batch_size)
     steps = cfg.epochs * steps_per_epoch
@@ -148,7 +155,7 @@ def _train(frames: np.ndarray, cfg: SegmenterTrainingConfig, model_cfg: SegmentN
         epoch_start, losses = time.monotonic(), []
         order = torch.randperm(len(images), generator=gen)
         for step in range(steps_per_epoch):
-            batch = images[order[step * cfg.batch_size : (step + 1) * cfg.batch_size]].float() / 255.0
+            batch = (images[order[step * cfg.batch_size : (step + 1) * cfg.batch_size]].float() / 255.0).to(device)
             loss = swapped_prediction_loss(model, *aligned_views(model, batch, cfg, gen), cfg)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -177,6 +184,7 @@ def _train(frames: np.ndarray, cfg: SegmenterTrainingConfig, model_cfg: SegmentN
         "history": history,
         "seconds": round(time.monotonic() - started, 1),
         "threads": torch.get_num_threads(),
+        "device": str(device),
         "load_average_1min": [round(v, 2) for v in load],
     }
-    return model.eval().requires_grad_(False), record
+    return model.cpu().eval().requires_grad_(False), record

@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from umad_common.models.device import bf16_supported
 from umad_common.models.weights import weight_paths
 from umad_common.models.world_model import (
     Observation,
@@ -197,7 +198,7 @@ def gaussian_kl(mean_q, std_q, mean_p, std_p) -> torch.Tensor:
 
 def ssim_loss(a: torch.Tensor, b: torch.Tensor, sigma: float = 1.5, radius: int = 5) -> torch.Tensor:
     """Mean 1 - SSIM of two (N, 3, H, W) batches in [0, 1], Gaussian window, per channel."""
-    x = torch.arange(-radius, radius + 1, dtype=a.dtype)
+    x = torch.arange(-radius, radius + 1, dtype=a.dtype, device=a.device)
     kernel = torch.exp(-(x**2) / (2 * sigma**2))
     kernel = kernel / kernel.sum()
     channels = a.shape[1]
@@ -297,13 +298,15 @@ def train_world_model(
     model_config: WorldModelConfig | None = None,
     train_config: TrainConfig | None = None,
     command: str | None = None,
+    device: str | torch.device = "cpu",
 ) -> dict:
-    """Train on the normal drives under `data`; writes OUT.safetensors, OUT.json, OUT.train.pt.
+    """Train on the normal drives under `data` on `device`; writes OUT.safetensors, OUT.json, OUT.train.pt.
 
-    `command` (the command line that asked for this training) is recorded in the JSON. Returns the
-    JSON record written beside the weights (configs, held-out drives, loss history, time).
+    `command` (the command line that asked for this training) and the device are recorded in the JSON.
+    Returns the JSON record written beside the weights (configs, held-out drives, loss history, time).
     """
     torch.set_num_threads(threads)
+    device = torch.device(device)
     model_config = model_config or WorldModelConfig()
     train = train_config or TrainConfig()
     checkpoint_path = Path(str(weight_paths(out)[0].with_suffix("")) + ".train.pt")
@@ -311,7 +314,7 @@ def train_world_model(
     if resume:
         if not checkpoint_path.is_file():
             raise FileNotFoundError(f"{checkpoint_path}: no training checkpoint to resume from")
-        checkpoint = torch.load(checkpoint_path, weights_only=True)
+        checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=True)
         model_config = WorldModelConfig.from_dict(checkpoint["model_config"])
         train = TrainConfig(**checkpoint["train_config"])
         if checkpoint["seed"] != seed:
@@ -323,10 +326,10 @@ def train_world_model(
     log.info("%d normal drives, %d frames in memory (held out: %s)", len(drives), frames, heldout)
 
     torch.manual_seed(seed)
-    model = WorldModel(model_config).to(memory_format=torch.channels_last)
-    bf16 = train.bf16 and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    model = WorldModel(model_config).to(device, memory_format=torch.channels_last)
+    bf16 = train.bf16 and bf16_supported(device)
     if train.bf16 and not bf16:
-        log.warning("this CPU has no bfloat16 support: training in float32 (slower, same model)")
+        log.warning("%s has no bfloat16 support here: training in float32 (slower, same model)", device)
     optimizer = torch.optim.Adam(model.parameters(), lr=train.learning_rate)
     steps_per_epoch = guaranteed_windows(drives, train.sequence_length) // train.batch_size
     if steps_per_epoch == 0:
@@ -360,8 +363,8 @@ def train_world_model(
             batch = windows[step * train.batch_size : (step + 1) * train.batch_size]
             mirrored = list(rng.random(len(batch)) < train.mirror)
             obs, prev_actions = observation_batch(drives, batch, train.sequence_length, mirrored)
-            obs = scale_speed(obs, model_config)
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            obs, prev_actions = scale_speed(obs, model_config).to(device), prev_actions.to(device)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
                 result = model.observe(obs, prev_actions, sample=train.sample_posterior)
                 predicted = open_loop_predictions(model, result, prev_actions, obs.speed, train)
             terms = world_model_loss(result, predicted, obs, train)
@@ -390,6 +393,7 @@ def train_world_model(
             "seed": seed,
             "epochs": epoch + 1,
             "threads": threads,
+            "device": str(device),
             "data": str(data),
             "training_drives": [d.name for d in drives],
             "heldout_drives": heldout,
