@@ -13,8 +13,8 @@ import os
 import sys
 
 from umad_common.dataflow.allocator import keep_freed_memory
+from umad_common.dataflow.exit_codes import EXIT_STOPPED
 
-STOPPED_BY_SIGNAL = 130  # a command stopped by Ctrl-C / SIGTERM returns this
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("launch",): ("umad_common.commands.launch", "start the graph: hub plus one process per operator replica"),
     ("graph", "check"): ("umad_common.commands.graph_check", "validate a graph.yaml"),
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"umad {' '.join(args._words)}: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1
-    if code == STOPPED_BY_SIGNAL:  # all is closed (the log, the graph): skip the interpreter's teardown,
+    if code == EXIT_STOPPED:  # all is closed (the log, the graph): skip the interpreter's teardown,
         logging.shutdown()  # which takes seconds with torch loaded on a busy machine
         sys.stdout.flush()
         sys.stderr.flush()

@@ -97,8 +97,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from replay.sweep import sweep_log
     from umad_common.commands.common import load_graph_or_exit
+    from umad_common.dataflow.exit_codes import EXIT_INCOMPLETE, EXIT_STOPPED
     from umad_common.dataflow.launcher import Launcher
-    from umad_common.dataflow.recording import EXIT_INCOMPLETE
     from umad_common.viz.report import write_report
 
     started = time.perf_counter()
@@ -136,6 +136,9 @@ def run(args: argparse.Namespace) -> int:
             "--allow-incomplete and run `umad sweep --allow-incomplete` on it",
             file=sys.stderr,
         )
+        return code
+    if code == EXIT_STOPPED:
+        print(f"stopped; the log so far is {record}", file=sys.stderr)
         return code
     if code not in (0, EXIT_INCOMPLETE):
         print(f"the graph failed (exit {code}); the log so far is {record}", file=sys.stderr)

@@ -32,11 +32,11 @@ from pathlib import Path
 import zenoh
 
 from umad_common.dataflow.bus import Keys, answer, cleanup_stale_shm, close_session, open_client
+from umad_common.dataflow.exit_codes import EXIT_CONFIG, EXIT_INCOMPLETE, EXIT_STOPPED
 from umad_common.dataflow.graph import Graph, GraphError, OperatorSpec, load_graph
 from umad_common.dataflow.mcap_log import describe_loss
 from umad_common.dataflow.payload_ring import SWEPT_BY_LAUNCHER, remove_stale_rings
-from umad_common.dataflow.recording import EXIT_INCOMPLETE, Recording
-from umad_common.dataflow.runtime import EXIT_CONFIG
+from umad_common.dataflow.recording import Recording
 
 log = logging.getLogger("umad.launch")
 STOP_GRACE_S = 10.0  # a graph that finished: its idle replicas get this long to exit on SIGTERM
@@ -336,7 +336,7 @@ class Launcher:
                 signal.signal(sig, handler)
             self._stop_hub(grace_s=1.0)
             if self._stop.is_set():
-                return 130
+                return EXIT_STOPPED
             log.error("no hub answered at %s within %.0fs", self.hub, HUB_CONNECT_TIMEOUT_S)
             return 1
         declared = []
@@ -413,7 +413,7 @@ class Launcher:
                 log.info("all sources finished")
                 return 0
             time.sleep(0.1)
-        return 130
+        return EXIT_STOPPED
 
     def _sweep_rings(self) -> None:
         """Remove the payload rings of replicas that exited more than RING_GRACE_S ago. Until then

@@ -40,7 +40,6 @@ from umad_common.dataflow.payload_ring import PayloadReader, fetch
 
 log = logging.getLogger("umad.record")
 
-EXIT_INCOMPLETE = 4  # `umad launch` / `umad replay`: the graph finished, but its log lacks messages
 
 CLOSE_GRACE_S = 2.0  # sinks acked, nothing left to read: the frame's missing outputs are not coming
 REACK_INTERVAL_S = 1.0  # a re-sent frame that was already recorded is acked again at most this often

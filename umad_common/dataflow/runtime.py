@@ -48,6 +48,7 @@ from umad_common.dataflow.allocator import keep_freed_memory
 from umad_common.dataflow.assignments import GraphError, merge_params, parse_sets
 from umad_common.dataflow.bus import Keys, ShutdownSignal, answer, close_session, open_client
 from umad_common.dataflow.delivery import FrameJoiner, Membership, OutputCache, Stats
+from umad_common.dataflow.exit_codes import EXIT_CONFIG
 from umad_common.dataflow.graph import Graph, load_graph
 from umad_common.dataflow.mcap_log import LogError
 from umad_common.dataflow.messages import Message, MessageError, decode, encode
@@ -70,7 +71,6 @@ IDLE_WAIT_S = 0.25  # an idle operator's sleep: the longest a stop signal waits 
 BAD_MESSAGE_LOG_FIRST = 10  # malformed messages logged one by one; later ones are summarised
 BAD_MESSAGE_LOG_INTERVAL_S = 5.0
 REWIND_RETRY_S = 10.0
-EXIT_CONFIG = 3  # an operator that exits with this failed on its configuration: restarting cannot help
 
 
 class Received(NamedTuple):
