@@ -3,7 +3,7 @@
 
 Pure numpy, no state: the same inputs give bit-identical outputs wherever they run.
 
-Rules (ARCHITECTURE.md, "fuse" and "refine"):
+Rules (docs/design.md, "Fusion" and "Mask-level refinement"):
 
 - `fuse` is the weighted sum of the maps present, divided by the sum of their weights (a weighted
   mean). With a fixed set of metrics that division is one constant for every frame, so every

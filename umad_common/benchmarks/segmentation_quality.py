@@ -1,4 +1,4 @@
-"""How well a segmenter isolates anomalies, measured on labelled drives (ARCHITECTURE.md: the
+"""How well a segmenter isolates anomalies, measured on labelled drives (docs/design.md: the
 distance between unsupervised and ground-truth masks is where most of the AP is).
 
 Per method, over every frame of the given drives, at the world model's size:

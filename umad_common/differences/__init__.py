@@ -1,5 +1,5 @@
 """Difference metrics (raw disagreement maps between the camera and the world model's picture of
-it) and their normalisation to [0, 1]. Formulas: ARCHITECTURE.md, "The method, per frame t".
+it) and their normalisation to [0, 1]. Formulas: docs/design.md, "The method, per frame t".
 
     metric = build_metric("ssim", MetricOptions())
     raw = metric(target, recon, preds, pred_valid)      # (h, w) float32

@@ -1,4 +1,4 @@
-"""The pixel difference metrics of UMAD: one small class per formula (ARCHITECTURE.md, "The method").
+"""The pixel difference metrics of UMAD: one small class per formula (docs/design.md, "The method, per frame t").
 
 Every metric turns one world-model frame (the camera image x, the reconstruction x̂_t and the past
 predictions x̂_{t|t-i}) into a raw (h, w) float32 disagreement map, larger = more unexpected.

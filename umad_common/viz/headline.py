@@ -15,7 +15,7 @@ from umad_common.viz.pages import Cell, Table
 
 SCORES = (("AP", True), ("FPR95", False), ("AUROC", True))  # (key, higher is better)
 
-PAPER_REFERENCE = {  # the paper's column -> its published figures, % on AnoVox (ARCHITECTURE.md)
+PAPER_REFERENCE = {  # the paper's column -> its published figures, % on AnoVox (docs/design.md, "The ablation table")
     "gt": "AP 29.90, FPR95 16.93 (PD)",
     "unsupervised": "U2Seg: AP 18.88 (PD); best FPR95 56.54",
     "none": "AP 10.86, FPR95 32.91 (PD)",
