@@ -51,5 +51,10 @@ class MaskRefiner(Operator):
             )
         masks = resize_nearest(masks.astype(bool, copy=False), fused.shape)
         refined = refine(fused, masks, mode=self.params.mode, uncovered=self.params.uncovered)
-        meta = {"mode": self.params.mode, "uncovered": self.params.uncovered, "masks": int(masks.shape[0])}
+        meta = {
+            "mode": self.params.mode,
+            "uncovered": self.params.uncovered,
+            "masks": int(masks.shape[0]),
+            "partial": bool(frame.inputs["fused"].meta.get("partial", False)),  # the fused map lacked a late map
+        }
         return {"refined": Output({"map": refined}, meta)}

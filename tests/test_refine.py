@@ -224,6 +224,6 @@ def test_mask_refiner_operator_resizes_masks_nearest():
     expected = np.zeros((4, 8), np.float32)
     expected[:2, :4] = 1.0
     np.testing.assert_array_equal(out.arrays["map"], expected)
-    assert out.meta == {"mode": "mean", "uncovered": "zero", "masks": 2}
+    assert out.meta == {"mode": "mean", "uncovered": "zero", "masks": 2, "partial": False}
     with pytest.raises(ValidationError):
         MaskRefiner({"mode": "median"})

@@ -5,6 +5,7 @@ from pathlib import Path
 REPOSITORY = Path(__file__).resolve().parents[1]  # holds umad_common/, operators/, replay/ and graph.yaml
 ASSETS = REPOSITORY / "umad_common" / "assets"  # the shipped weights and calibration
 DEFAULT_GRAPH = REPOSITORY / "graph.yaml"  # the built-in graph, beside the package
+LIVE_GRAPH = REPOSITORY / "umad_common" / "graphs" / "live.yaml"  # UMAD alone at 10 Hz (`umad launch --live`)
 
 
 def recorded_path(path: str | Path) -> str:

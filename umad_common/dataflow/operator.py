@@ -228,6 +228,7 @@ BUILTIN_KINDS = {
     "fusion": "operators.fusion:Fusion",
     "segmenter": "operators.segmenter:Segmenter",
     "mask_refiner": "operators.mask_refiner:MaskRefiner",
+    "frame_result": "operators.frame_result:FrameResult",
     "mnad": "operators.mnad:MnadPredictor",
     "accumulator": "operators.accumulator:Accumulator",
 }

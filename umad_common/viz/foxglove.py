@@ -37,9 +37,27 @@ def _colour_map(score: np.ndarray) -> np.ndarray:
     return cv2.applyColorMap(scaled, cv2.COLORMAP_INFERNO)
 
 
+def _boxes_picture(msg: Message) -> np.ndarray:
+    """A frame result's boxes on a dark canvas of the image's size: each outlined in its score's
+    colour with the score beside it, the frame's score in the top-left corner."""
+    height, width = (int(n) for n in msg.meta.get("image_size", (256, 384)))
+    picture = np.zeros((height, width, 3), np.uint8)
+    colours = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_INFERNO)[:, 0]
+    for (x0, y0, x1, y1), score in zip(msg.arrays["boxes"], msg.arrays["box_scores"], strict=True):
+        colour = tuple(int(c) for c in colours[int(np.clip(score, 0, 1) * 255)])
+        cv2.rectangle(picture, (int(x0), int(y0)), (int(x1) - 1, int(y1) - 1), colour, 2)
+        cv2.putText(picture, f"{score:.2f}", (int(x0), max(int(y0) - 3, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour)
+    frame_score = float(msg.arrays["score"][0])
+    partial = " partial" if msg.meta.get("partial") else ""
+    cv2.putText(picture, f"score {frame_score:.3f}{partial}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255))
+    return picture
+
+
 def views(output: str, msg: Message) -> dict[str, np.ndarray]:
     """BGR uint8 pictures worth showing for one message, by sub-name."""
     arrays = msg.arrays
+    if "boxes" in arrays and "box_scores" in arrays and "score" in arrays:
+        return {"": _boxes_picture(msg)}
     if "rgb" in arrays and arrays["rgb"].ndim == 3:
         return {"": np.ascontiguousarray(arrays["rgb"][..., ::-1])}
     if output == "frame" and "recon" in arrays:

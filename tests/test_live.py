@@ -1,0 +1,80 @@
+"""The shipped live graph, its per-frame result operator and its Foxglove view, and `umad bench live`."""
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from operators.frame_result import FrameResult, frame_result, mask_boxes
+from tests.conftest import run_umad
+from umad_common import LIVE_GRAPH
+from umad_common.dataflow import Frame
+from umad_common.dataflow.graph import load_graph
+from umad_common.dataflow.messages import Message
+from umad_common.viz.foxglove import views
+
+
+def test_live_graph_checks_and_is_umad_alone_at_10_hz():
+    result = run_umad("graph", "check", str(LIVE_GRAPH))
+    assert result.returncode == 0, result.stderr
+    graph = load_graph(LIVE_GRAPH)
+    kinds = {spec.kind for spec in graph.spec.operators}
+    assert not kinds & {"mnad", "accumulator"}
+    assert "gt" not in {spec.params.get("method") for spec in graph.spec.operators}
+    assert graph.op("replayer").params | {"pacing": "realtime", "rate_hz": 10} == graph.op("replayer").params
+    assert graph.sinks() == ["result"]
+
+
+def two_objects() -> tuple[np.ndarray, np.ndarray]:
+    """A (4, 8) refined map with two masks: mask 0 the block rows 1-2, columns 1-2 at 0.9; mask 1
+    the block row 3, columns 4-7 at 0.3; mask 2 empty."""
+    refined = np.zeros((4, 8), np.float32)
+    masks = np.zeros((3, 4, 8), bool)
+    masks[0, 1:3, 1:3] = True
+    masks[1, 3, 4:8] = True
+    refined[masks[0]] = 0.9
+    refined[masks[1]] = 0.3
+    return refined, masks
+
+
+def test_mask_boxes_are_pixel_edges():
+    _, masks = two_objects()
+    np.testing.assert_array_equal(mask_boxes(masks[:2]), [[1, 1, 3, 3], [4, 3, 8, 4]])
+
+
+def test_frame_result_orders_scales_and_leaves_out():
+    refined, masks = two_objects()
+    score, boxes, scores = frame_result(refined, masks, top_k=5)
+    assert score == pytest.approx(0.9)
+    np.testing.assert_array_equal(boxes, [[1, 1, 3, 3], [4, 3, 8, 4]])  # the empty mask is not reported
+    np.testing.assert_allclose(scores, [0.9, 0.3], rtol=1e-6)
+    _, boxes, scores = frame_result(refined, masks, top_k=1, image_size=(8, 32))  # 2x rows, 4x columns
+    np.testing.assert_array_equal(boxes, [[4, 2, 12, 6]])
+    _, boxes, _ = frame_result(refined, masks, top_k=5, min_score=0.5)
+    assert boxes.shape == (1, 4)
+    _, boxes, scores = frame_result(refined, masks[:0], top_k=5)
+    assert boxes.shape == (0, 4) and scores.shape == (0,)
+
+
+def test_frame_result_operator_on_a_frame_with_camera_and_partial_map():
+    refined, masks = two_objects()
+    frame = Frame(
+        "drive",
+        3,
+        0,
+        inputs={
+            "refined": Message("drive", 3, meta={"partial": True}, arrays={"map": refined}),
+            "masks": Message("drive", 3, arrays={"masks": masks}),
+            "camera": Message("drive", 3, arrays={"rgb": np.zeros((16, 32, 3), np.uint8)}),
+        },
+    )
+    out = FrameResult({"top_k": 2}).process(frame)["result"]
+    assert out.meta == {"score": pytest.approx(0.9), "boxes": 2, "image_size": [16, 32], "partial": True}
+    np.testing.assert_array_equal(out.arrays["boxes"], [[4, 4, 12, 12], [16, 12, 32, 16]])  # 4x the map
+    np.testing.assert_allclose(out.arrays["box_scores"], [0.9, 0.3], rtol=1e-6)
+    picture = views("result", Message("drive", 3, meta=out.meta, arrays=out.arrays))[""]
+    assert picture.shape == (16, 32, 3) and picture.any()
+    with pytest.raises(ValueError, match=r"expected \(h, w\) and \(K, h', w'\)"):
+        flat = Message("drive", 0, arrays={"masks": refined > 0})
+        FrameResult({}).process(Frame("drive", 0, 0, inputs={**frame.inputs, "masks": flat}))
+    with pytest.raises(ValidationError):
+        FrameResult({"top_k": -1})
