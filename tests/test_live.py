@@ -78,3 +78,22 @@ def test_frame_result_operator_on_a_frame_with_camera_and_partial_map():
         FrameResult({}).process(Frame("drive", 0, 0, inputs={**frame.inputs, "masks": flat}))
     with pytest.raises(ValidationError):
         FrameResult({"top_k": -1})
+
+
+@pytest.mark.slow
+def test_bench_live_reports_kept_missed_latency_and_cpu_per_operator(hub_endpoint):
+    from umad_common.benchmarks.live import bench_live
+
+    result = bench_live(frames=10, hub=hub_endpoint, rate_hz=4.0)  # a slow rate: the test runs beside others
+    assert result["frames_sent"] == 10 and result["frames_failed"] == 0
+    counted = ("frames_kept", "frames_partial", "frames_dropped")
+    assert sum(result[k] for k in counted) == 10 and result["frames_missed"] == 10 - result["frames_kept"]
+    assert result["frames_kept"] >= 1 and 0 < result["fps_kept"] <= 4.5
+    for name in ("camera_to_refined", "camera_to_result"):
+        latency = result["latency_ms"][name]
+        assert latency["frames"] >= result["frames_kept"]
+        assert 0 < latency["p50"] <= latency["p99"] <= latency["max"]
+    assert result["latency_ms"]["camera_to_refined"]["p50"] <= result["latency_ms"]["camera_to_result"]["p50"]
+    operators = result["cpu_ms_per_frame"]
+    assert {"replayer", "world_model", "fusion", "segment", "refine", "result"} <= set(operators)
+    assert "mnad" not in operators and operators["world_model"]["cpu_ms"] > 0

@@ -1,4 +1,4 @@
-"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|record|control|all] [--out FILE.json]`.
+"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|record|control|live|all] [--out FILE.json]`.
 
 Each bench measures both sides of its ratio in the same run on the same machine, so the ratio is
 meaningful where the absolute numbers are not. Results are printed as Markdown and, with --out,
@@ -10,7 +10,18 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-BENCHES = ("bus", "metrics", "differences", "predictors", "scaling", "segmenters", "pipeline", "record", "control")
+BENCHES = (
+    "bus",
+    "metrics",
+    "differences",
+    "predictors",
+    "scaling",
+    "segmenters",
+    "pipeline",
+    "record",
+    "control",
+    "live",
+)
 
 
 def add_arguments(parser):
@@ -88,6 +99,10 @@ def _run_one(name: str, args) -> dict:
         from umad_common.benchmarks.record import bench_record
 
         return bench_record(frames=args.frames or 30, hub=args.hub)
+    if name == "live":
+        from umad_common.benchmarks.live import bench_live
+
+        return bench_live(frames=args.frames or 600, hub=args.hub)
     if name == "control":
         from umad_common.benchmarks.control import bench_control
 
