@@ -144,6 +144,7 @@ def bench_live(
             "camera_to_refined": percentiles(latencies(arrivals, "refined")),
             "camera_to_result": percentiles(latencies(arrivals, "result")),
         },
+        "source_acked": source["acked"],
         "source_send_to_ack_p50_ms": source["p50_ms"],
         "source_send_to_ack_p99_ms": source["p99_ms"],
         "dropped_in_operators": sum(s.get("dropped", 0) for s in stats.values()),
