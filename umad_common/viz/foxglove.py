@@ -40,10 +40,12 @@ def _colour_map(score: np.ndarray) -> np.ndarray:
 def _boxes_picture(msg: Message) -> np.ndarray:
     """A frame result's boxes on a dark canvas of the image's size: each outlined in its score's
     colour with the score beside it, the frame's score in the top-left corner."""
-    height, width = (int(n) for n in msg.meta.get("image_size", (256, 384)))
+    boxes = msg.arrays["boxes"]
+    extent = (int(boxes[:, 3].max()), int(boxes[:, 2].max())) if len(boxes) else (1, 1)
+    height, width = (int(n) for n in msg.meta.get("image_size", extent))
     picture = np.zeros((height, width, 3), np.uint8)
     colours = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_INFERNO)[:, 0]
-    for (x0, y0, x1, y1), score in zip(msg.arrays["boxes"], msg.arrays["box_scores"], strict=True):
+    for (x0, y0, x1, y1), score in zip(boxes, msg.arrays["box_scores"], strict=True):
         colour = tuple(int(c) for c in colours[int(np.clip(score, 0, 1) * 255)])
         cv2.rectangle(picture, (int(x0), int(y0)), (int(x1) - 1, int(y1) - 1), colour, 2)
         cv2.putText(picture, f"{score:.2f}", (int(x0), max(int(y0) - 3, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour)
