@@ -19,7 +19,8 @@ clock, and matches them by (run, seq). Reported:
   it the replayer's own send-to-ack latency (`source_send_to_ack_*`, the result operator's ack);
 - `cpu_ms_per_frame`: per operator, its own work per frame it computed, and `runtime_cpu_ms` per
   frame the runtime's (decoding, joining, acks), from the replicas' stats as the launcher prints
-  them; `queue_ms` shows the operator a frame waited for.
+  them; `queue_ms` shows the operator a frame waited for. `counts`: per replica, frames in and out,
+  frames its joiner dropped and ring payloads overwritten before it read them (`lost_payloads`).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from umad_common import LIVE_GRAPH
 from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.benchmarks.pipeline import stage_times
 
+COUNTS = ("frames_in", "frames_out", "dropped", "lost_payloads", "errors")  # per replica, from its stats
 WATCHED = {"camera": ("replayer", "camera"), "refined": ("refine", "refined"), "result": ("result", "result")}
 
 
@@ -151,6 +153,7 @@ def bench_live(
         "unreadable_payloads": arrivals.unreadable,
         "wall_s_with_startup": result["wall_s_with_startup"],
         "cpu_ms_per_frame": {op: stage_times(stats, op) for op in sorted({name.rsplit(".", 1)[0] for name in stats})},
+        "counts": {name: {k: replica.get(k, 0) for k in COUNTS} for name, replica in sorted(stats.items())},
     }
 
 
