@@ -13,8 +13,9 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from operators.mask_refiner import map_and_masks
 from umad_common.dataflow import Frame, Input, Operator, Output, input_array
-from umad_common.refine import mask_scores, resize_nearest
+from umad_common.refine import mask_scores
 
 
 class FrameResultParams(BaseModel):
@@ -77,17 +78,10 @@ class FrameResult(Operator):
     Params = FrameResultParams
 
     def process(self, frame: Frame) -> dict[str, Output]:
-        refined = input_array(frame, "refined", "map", self.kind)
-        masks = input_array(frame, "masks", "masks", self.kind)
-        if refined.ndim != 2 or masks.ndim != 3:
-            raise ValueError(
-                f"frame_result {frame.frame_id}: got refined {refined.shape} and masks {masks.shape}; "
-                "expected (h, w) and (K, h', w')"
-            )
+        refined, masks = map_and_masks(frame, "refined", self.kind)
         image_size = None
         if "camera" in frame.inputs:
             image_size = tuple(input_array(frame, "camera", "rgb", self.kind).shape[:2])
-        masks = resize_nearest(masks.astype(bool, copy=False), refined.shape)
         score, boxes, box_scores = frame_result(refined, masks, self.params.top_k, self.params.min_score, image_size)
         meta = {
             "score": score,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from umad_common.dataflow import Frame, Input, Operator, Output, input_array
@@ -33,6 +34,19 @@ class MaskRefinerParams(BaseModel):
     )
 
 
+def map_and_masks(frame: Frame, map_port: str, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's score map (port `map_port`, array `map`, (h, w)) and its masks (port `masks`,
+    (K, h', w')) resized to the map's size as bool; a ValueError naming both shapes otherwise."""
+    score_map = input_array(frame, map_port, "map", kind)
+    masks = input_array(frame, "masks", "masks", kind)
+    if score_map.ndim != 2 or masks.ndim != 3:
+        raise ValueError(
+            f"{kind} {frame.frame_id}: got {map_port} {score_map.shape} and masks {masks.shape}; "
+            "expected (h, w) and (K, h', w')"
+        )
+    return score_map, resize_nearest(masks.astype(bool, copy=False), score_map.shape)
+
+
 class MaskRefiner(Operator):
     """Per-frame mask-level refinement of the fused map."""
 
@@ -42,14 +56,7 @@ class MaskRefiner(Operator):
     Params = MaskRefinerParams
 
     def process(self, frame: Frame) -> dict[str, Output]:
-        fused = input_array(frame, "fused", "map", self.kind)
-        masks = input_array(frame, "masks", "masks", self.kind)
-        if fused.ndim != 2 or masks.ndim != 3:
-            raise ValueError(
-                f"mask_refiner {frame.frame_id}: got fused {fused.shape} and masks {masks.shape}; "
-                "expected (h, w) and (K, h', w')"
-            )
-        masks = resize_nearest(masks.astype(bool, copy=False), fused.shape)
+        fused, masks = map_and_masks(frame, "fused", self.kind)
         refined = refine(fused, masks, mode=self.params.mode, uncovered=self.params.uncovered)
         meta = {
             "mode": self.params.mode,
