@@ -169,14 +169,18 @@ def graph_address(path: str | Path) -> tuple[str, str, TlsConfig | None]:
     """A graph file's name, hub and TLS settings, read without importing its operators: what a
     command needs to reach the graph when it runs."""
     path = Path(path)
-    data = _read_yaml(path)
-    if not isinstance(data, dict):
-        raise GraphError([f"{path}: expected a mapping with `operators:`, got {type(data).__name__}"])
-    try:
-        spec = GraphSpec.model_validate(data)
-    except ValidationError as exc:
-        raise GraphError([f"{path}: {_describe(err, data)}" for err in exc.errors()]) from None
+    spec = _graph_spec(_read_yaml(path), f"{path}: ")
     return spec.name, spec.hub, Graph(spec, {}, path).tls_config()
+
+
+def _graph_spec(data: Any, where: str) -> GraphSpec:
+    """The graph file's mapping validated as a GraphSpec; GraphError naming each problem otherwise."""
+    if not isinstance(data, dict):
+        raise GraphError([f"{where}expected a mapping with `operators:`, got {type(data).__name__}"])
+    try:
+        return GraphSpec.model_validate(data)
+    except ValidationError as exc:
+        raise GraphError([f"{where}{_describe(err, data)}" for err in exc.errors()]) from None
 
 
 def _read_yaml(path: Path) -> Any:
@@ -190,12 +194,7 @@ def _read_yaml(path: Path) -> Any:
 
 def validate_graph(data: Any, path: Path | None = None) -> Graph:
     where = f"{path}: " if path else ""
-    if not isinstance(data, dict):
-        raise GraphError([f"{where}expected a mapping with `operators:`, got {type(data).__name__}"])
-    try:
-        spec = GraphSpec.model_validate(data)
-    except ValidationError as exc:
-        raise GraphError([f"{where}{_describe(err, data)}" for err in exc.errors()]) from None
+    spec = _graph_spec(data, where)
 
     problems: list[str] = []
     classes: dict[str, type[Operator]] = {}

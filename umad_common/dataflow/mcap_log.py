@@ -61,7 +61,6 @@ class McapRecorder:
         self._schemas: dict[str, int] = {}
         self._lock = threading.Lock()
         self.count = 0
-        self.last_write = time.monotonic()
         self._viz_queue: queue.Queue | None = None
         if viz:  # pictures are encoded off the Zenoh callback thread
             self._viz_queue = queue.Queue(maxsize=256)
@@ -85,7 +84,6 @@ class McapRecorder:
                 channel = self._channels[key] = self._writer.register_channel(key, encoding, 0)
             self._writer.add_message(channel, time.time_ns(), bytes(payload), stamp, seq)
             self.count += 1
-            self.last_write = time.monotonic()
         return msg
 
     def write_json(self, topic: str, schema_name: str, schema: dict, obj: dict, stamp_ns: int) -> None:
