@@ -33,6 +33,7 @@ class MnadPredictor(Operator):
     """Per-frame MNAD anomaly map."""
 
     kind = "mnad"
+    fixed_params = ("device",)
     inputs = (Input("camera"),)
     outputs = ("map",)
     Params = MnadParams
@@ -49,11 +50,6 @@ class MnadPredictor(Operator):
         self.model, record = load_mnad(path, self.device)  # raises WeightsError naming the file
         self.weights_name = path.name
         self.trained_on = record.get("training", {}).get("data")
-
-    def update_params(self, params: BaseModel) -> None:
-        if params.device != self.params.device:
-            raise ValueError("mnad: `device` cannot change at runtime; restart the operator on the new device")
-        super().update_params(params)
 
     def process(self, frame: Frame) -> dict[str, Output]:
         from umad_common.models.mnad import to_input

@@ -62,6 +62,7 @@ class WorldModelPredictor(Operator):
     outputs = ("frame",)
     Params = WorldModelParams
     ordered = True
+    fixed_params = ("model", "device")
 
     def __init__(self, params: BaseModel | dict | None = None, context=None):
         super().__init__(params, context)
@@ -88,10 +89,6 @@ class WorldModelPredictor(Operator):
         self.steps = 0
 
     def update_params(self, params: BaseModel) -> None:
-        if params.model != self.params.model:
-            raise ValueError("world_model: `model` cannot change at runtime; restart the operator with the new weights")
-        if params.device != self.params.device:
-            raise ValueError("world_model: `device` cannot change at runtime; restart the operator on the new device")
         horizon_changed = params.horizon != self.params.horizon
         super().update_params(params)
         self.torch.set_num_threads(params.threads)

@@ -139,6 +139,8 @@ class Operator:
         ordered: frames of a run arrive in seq order, starting at 0 (stateful operators); such an
             operator runs as a single replica.
         end_of_run_outputs: `end_run` may return outputs (e.g. the accumulator's final metrics).
+        fixed_params: parameters read once when the operator is built (its weights, its device):
+            `umad set` refuses to change them; the operator is restarted for a new value.
     """
 
     kind: ClassVar[str] = ""
@@ -146,6 +148,7 @@ class Operator:
     outputs: ClassVar[tuple[str, ...]] = ()
     Params: ClassVar[type[BaseModel]] = NoParams
     ordered: ClassVar[bool] = False
+    fixed_params: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, params: BaseModel | dict | None = None, context: Context | None = None):
         self.context = context or Context()
@@ -165,7 +168,13 @@ class Operator:
         return []
 
     def update_params(self, params: BaseModel) -> None:
-        """Called between frames when the control key changes a parameter (already validated)."""
+        """Called between frames when the control key changes a parameter (already validated); a
+        change of one of `fixed_params` is refused."""
+        for name in self.fixed_params:
+            if getattr(params, name) != getattr(self.params, name):
+                raise ValueError(
+                    f"{self.kind}: `{name}` cannot change at runtime; restart the operator with the new value"
+                )
         self.params = params
 
     def process(self, frame: Frame) -> dict[str, Output]:
