@@ -57,6 +57,7 @@ class Stats:
     dropped: int = 0
     retransmits: int = 0
     lost_payloads: int = 0  # ring references whose payload was gone (recovered by retransmission)
+    superseded: int = 0  # live mode: frames passed over for a newer frame of their run (stale or lost)
     param_changes: int = 0
     busy_s: float = 0.0  # sources: first send to last ack
     acked: int = 0  # sources: frames every sink has acked
@@ -132,6 +133,14 @@ class FrameJoiner:
 
     def discard(self, key: tuple[str, int]) -> None:
         self.pending.pop(key, None)
+
+    def discard_older(self, run: str, seq: int) -> dict[int, int]:
+        """Forget the frames of `run` before `seq` still waiting for inputs; returns their
+        {seq: stamp_ns}."""
+        older = {key[1]: entry.stamp_ns for key, entry in self.pending.items() if key[0] == run and key[1] < seq}
+        for s in older:
+            del self.pending[(run, s)]
+        return older
 
     def pop_ready(self, expected: dict[str, set[str]], deadline_s: float = 0.0) -> list[Frame]:
         now = time.monotonic()

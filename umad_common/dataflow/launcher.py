@@ -523,15 +523,19 @@ SUMMARY_TIMES = {  # stats field -> column: where a frame's time went in each re
 
 
 def summary_table(stats: dict[str, dict]) -> str:
-    """The final per-replica table: counts, then ms per frame: processing latency (p50, p99), the
-    operator's own CPU (`cpu`), the runtime's and the bus's CPU in the process (`rt cpu`), waiting
-    for a slower input (`wait`), waiting for this replica to be free (`queue`: replicate it), and
-    the hop from the producer (`bus`)."""
-    head = f"{'replica':<24}{'in':>7}{'out':>7}{'errors':>7}{'bad':>5}{'dups':>5}"
+    """The final per-replica table: counts (`passed`: frames passed over in live mode for a newer
+    one), then ms per frame: processing latency (p50, p99), the operator's own CPU (`cpu`), the
+    runtime's and the bus's CPU in the process (`rt cpu`), waiting for a slower input (`wait`),
+    waiting for this replica to be free (`queue`: replicate it), and the hop from the producer
+    (`bus`)."""
+    head = f"{'replica':<24}{'in':>7}{'out':>7}{'errors':>7}{'bad':>5}{'dups':>5}{'passed':>7}"
     lines = [head + "".join(f"{col:>8}" for col in SUMMARY_TIMES.values()) + "   (times: ms per frame)"]
     for name in sorted(stats):
         s = stats[name]
-        row = f"{name:<24}{s['frames_in']:>7}{s['frames_out']:>7}{s['errors']:>7}{s['bad_messages']:>5}{s['duplicates']:>5}"
+        row = (
+            f"{name:<24}{s['frames_in']:>7}{s['frames_out']:>7}{s['errors']:>7}{s['bad_messages']:>5}"
+            f"{s['duplicates']:>5}{s.get('superseded', 0):>7}"
+        )
         times = [s.get(field) for field in SUMMARY_TIMES]
         lines.append(row + "".join(f"{t:>8.1f}" if t is not None else f"{'-':>8}" for t in times))
     return "\n".join(lines)

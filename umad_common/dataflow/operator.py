@@ -137,7 +137,9 @@ class Operator:
         inputs / outputs: the ports.
         Params: a pydantic model; unknown keys are refused (set `extra="forbid"`).
         ordered: frames of a run arrive in seq order, starting at 0 (stateful operators); such an
-            operator runs as a single replica.
+            operator runs as a single replica. In live mode (a realtime source) the seqs still
+            increase but may skip: a frame lost on the way, or stale once a newer one was ready, is
+            passed over, and the operator handles the gap it sees in seq (the world model bridges it).
         end_of_run_outputs: `end_run` may return outputs (e.g. the accumulator's final metrics).
         fixed_params: parameters read once when the operator is built (its weights, its device):
             `umad set` refuses to change them; the operator is restarted for a new value.

@@ -19,6 +19,11 @@ Delivery protocol (lossless by design):
   - after the last frame of a run is acked the source sends an end-of-run marker (meta `eos`),
     which each operator passes on after calling its `end_run`.
 
+Live mode (a source paces in real time and never re-sends) replaces waiting with taking the newest:
+an operator processes the newest frame it has ready and passes the older ones over (meta
+`superseded`, counted in `superseded`), so a lost payload never holds an ordered operator and a
+slow operator never works through a backlog (`_finish_newest`).
+
 Commands arrive as queries on the control key and are answered once applied or refused; what does
 not change while the graph runs (is this replica a sink, which producers feed a wildcard port) is
 worked out once, or again when the live membership changes, never per frame.
@@ -171,7 +176,7 @@ class OperatorRuntime:
         # the transform loop's state
         self._cache = OutputCache()  # recent outputs, re-published for a duplicate input
         self._ended: dict[str, list[tuple[str, bytes]]] = {}  # run -> its end-of-run payloads
-        self._next_seq: dict[str, int] = defaultdict(int)  # ordered operators: run -> next seq to process
+        self._next_seq: dict[str, int] = defaultdict(int)  # ordered or live: run -> the lowest seq still to process
         self._in_order: dict[str, dict[int, Frame]] = defaultdict(dict)  # run -> joined frames waiting their turn
 
     # -- wiring -----------------------------------------------------------------------------------
@@ -370,14 +375,17 @@ class OperatorRuntime:
     def _message_of(self, received: Received) -> Message | MessageError | None:
         """The message; a reference to a ring this host cannot map is fetched from its publisher. A
         payload nobody has any more is counted in `lost_payloads` and left to the source's
-        retransmission, which brings the frame again."""
+        retransmission, which brings the frame again; in live mode, where nothing is re-sent, its
+        frame is passed over once a newer one is processed (`_finish_newest`)."""
         if not isinstance(received.message, bytes):
             return received.message
         payload = fetch(self.session, self.keys.root, received.message)
         if payload is None:
             self.stats.lost_payloads += 1
             self.log.warning(
-                "payload on %s could not be fetched from its publisher; waiting for a resend", received.key
+                "payload on %s could not be fetched from its publisher; %s",
+                received.key,
+                "its frame will be passed over" if self.live else "waiting for a resend",
             )
             return None
         return decode_or_refuse(payload)
@@ -479,15 +487,34 @@ class OperatorRuntime:
             except queue.Empty:
                 received = None
             if received is not None:
-                if not self._take(received):
+                taken = self._take(received)
+                if self.live:  # choose among every frame already waiting, not the first one
+                    taken = self._take_waiting() or taken
+                if not taken:
                     continue
             elif not live_changed and not (deadline_s and self.joiner.pending):
                 continue
-            for frame in self.joiner.pop_ready(self._routes()[0], deadline_s):
+            ready = self.joiner.pop_ready(self._routes()[0], deadline_s)
+            if self.live:
+                self._finish_newest(ready)
+                continue
+            for frame in ready:
                 if self.cls.ordered:
                     self._finish_in_order(frame)
                 else:
                     self._finish(frame)
+
+    def _take_waiting(self) -> bool:
+        """Live mode: take every message already queued; True when any of them needs a join."""
+        taken = False
+        for _ in range(self.data_q.qsize()):
+            try:
+                received = self.data_q.get_nowait()
+            except queue.Empty:
+                break
+            if received is not None:  # None only wakes the loop for a command
+                taken = self._take(received) or taken
+        return taken
 
     def _take(self, received: Received) -> bool:
         """Hand one input message to the joiner; False when it needs no join (unreadable, malformed,
@@ -513,6 +540,8 @@ class OperatorRuntime:
             return False
         if not self._owns(msg.seq):
             return False
+        if self.live and msg.seq < self._next_seq[msg.run]:
+            return False  # an input of a frame this operator passed over (`_finish_newest`)
         self.joiner.add(received.port, producer, msg)
         return True
 
@@ -530,6 +559,45 @@ class OperatorRuntime:
             self._finish(waiting.pop(self._next_seq[run]))
             self._next_seq[run] += 1
 
+    def _finish_newest(self, ready: list[Frame]) -> None:
+        """Live mode: a camera's consumer wants the newest frame, not a backlog, and a frame lost on
+        the way never comes again (live sources do not re-send).
+
+        The rule: of each run, the newest ready frame to compute is processed, and every older frame
+        of the run this replica holds (ready with it, or still waiting for an input that was lost or
+        is late) is passed over: counted in `superseded` and sent on as a marker with meta
+        `superseded`, so the sinks ack it and the operators after this one pass it on without
+        computing. Inputs of a passed-over frame that come later are ignored. Frames that need no
+        computing (an input is an error, skip or superseded marker) are passed on at once and do not
+        compete. An ordered operator thus sees its run's frames in increasing seq order with gaps
+        where frames were passed over (the world model bridges a gap), never waits for an earlier
+        frame, and a replica restarted mid-run starts from the newest frame (no rewind: a live
+        source's old frames are worthless).
+        """
+        to_compute: list[Frame] = []
+        for frame in sorted(ready, key=lambda f: f.seq):
+            if self._marker_meta(frame) is None:
+                to_compute.append(frame)
+            else:
+                self._finish(frame)
+        newest = {frame.run: frame for frame in to_compute}  # sorted by seq: the last of each run wins
+        for run, frame in newest.items():
+            passed = {f.seq: f.stamp_ns for f in to_compute if f.run == run and f.seq < frame.seq}
+            passed.update(self.joiner.discard_older(run, frame.seq))
+            for seq in sorted(passed):
+                self._pass_over(run, seq, passed[seq])
+            self._next_seq[run] = frame.seq + 1
+            self._finish(frame)
+
+    def _pass_over(self, run: str, seq: int, stamp_ns: int) -> None:
+        """Send a superseded marker for a frame this live operator will not process."""
+        self.stats.superseded += 1
+        payloads = self.markers(run, seq, stamp_ns, {"superseded": True})
+        self._cache.put((run, seq), payloads)
+        self.publish(payloads, count=False)
+        if self.is_sink:
+            self._ack(run, seq)
+
     def _finish(self, frame: Frame) -> None:
         """Process one joined frame (or pass on its error or skip marker), cache and publish the result."""
         self.stats.frames_in += 1
@@ -537,16 +605,29 @@ class OperatorRuntime:
         self._cache.put((frame.run, frame.seq), payloads)
         self._publish_and_ack(frame.run, frame.seq, payloads)
 
-    def _payloads_for(self, frame: Frame) -> list[tuple[str, bytes]]:
-        """A frame's outputs: an input's error passed on, a skip marker (an in-order operator still
-        processes the frame for its state), or what `process` returned, or the error it raised."""
-        received = (*frame.inputs.values(), *(x for d in frame.many.values() for x in d.values()))
+    def _marker_meta(self, frame: Frame) -> dict | None:
+        """The meta of the marker a frame is passed on as, without computing: an input's error, a
+        superseded input (live mode: an operator before this one passed the frame over), or a skip
+        for an operator that is not ordered (an in-order operator still processes a skipped frame
+        for its state); None for a frame to compute."""
+        received = frame_messages(frame)
         failed = [m for m in received if m.meta.get("error")]
-        skipped = any(m.meta.get("skip") for m in received)
         if failed:
-            return self.markers(frame.run, frame.seq, frame.stamp_ns, {"error": failed[0].meta["error"]})
-        if skipped and not self.cls.ordered:
-            return self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
+            return {"error": failed[0].meta["error"]}
+        if any(m.meta.get("superseded") for m in received):
+            return {"superseded": True}
+        if not self.cls.ordered and any(m.meta.get("skip") for m in received):
+            return {"skip": True}
+        return None
+
+    def _payloads_for(self, frame: Frame) -> list[tuple[str, bytes]]:
+        """A frame's outputs: a marker passed on (`_marker_meta`), or what `process` returned (a skip
+        marker for a skipped frame an in-order operator processed for its state), or the error it
+        raised."""
+        marker = self._marker_meta(frame)
+        if marker is not None:
+            return self.markers(frame.run, frame.seq, frame.stamp_ns, marker)
+        skipped = any(m.meta.get("skip") for m in frame_messages(frame))
         start, cpu_start = time.perf_counter(), time.process_time()
         try:
             outputs = self.operator.process(frame)
@@ -600,6 +681,11 @@ class OperatorRuntime:
         self.publish(payloads)
         if self.is_sink:
             self._ack(run, seq)
+
+
+def frame_messages(frame: Frame) -> list[Message]:
+    """Every input message of a joined frame, single and `many` ports alike."""
+    return [*frame.inputs.values(), *(m for port in frame.many.values() for m in port.values())]
 
 
 def _one_line(exc: Exception) -> str:
