@@ -16,6 +16,14 @@ with one step per `frame_step` dataset frames (in its JSON); stride should match
 
 A frame the source does not score (meta `skip`, `umad eval --every k`) still moves the state and the
 rollouts on, but nothing is decoded: the runtime passes it on as a skip marker.
+
+In live mode the runtime passes over frames that were lost or stale (it processes the newest ready
+frame), so seq may jump. A gap of up to `max_gap_steps` model steps is bridged as the model would
+without looking: through each missed step the state moves on by the transition and the prior (the
+last action held), and the rollouts move on too, so x̂_{t|t-i} still predicts from i model steps
+back; no rollout starts at a missed step, so its row stays `pred_valid` 0. A longer gap restarts the
+run's state as at seq 0: the prior rolled that far without an observation is no better than a blank
+state, and bridging costs a transition per missed step. In lossless mode there are no gaps.
 """
 
 from __future__ import annotations
@@ -50,6 +58,12 @@ class WorldModelParams(BaseModel):
         description="the model steps on every stride-th frame of a run (seq % stride == 0); frames in between get "
         "a reconstruction from the last step's state and no predictions",
     )
+    max_gap_steps: int = Field(
+        default=10,
+        ge=0,
+        description="live mode: a gap of up to this many model steps whose frames were passed over is bridged "
+        "with the model's prior; a longer gap restarts the run's state",
+    )
     threads: int = Field(default=1, ge=1, description="torch CPU threads of this process")
     device: DeviceName = device_field()
 
@@ -78,13 +92,14 @@ class WorldModelPredictor(Operator):
         self.config = self.model.config
         self.trained_frame_step = int(self.config.frame_step)
         self.run: str | None = None
+        self.last_seq = 0  # the last frame of `run` processed
         self.reset()
 
     def reset(self) -> None:
         """Forget the previous run: initial state, no rollouts, no pending action."""
         self.state: State = self.model.initial_state(1)
-        self.rollouts: list[tuple[State, torch.Tensor]] = []  # prior rollouts advanced to the last step and
-        #   the speed of the frame each started from; [i-1] started i steps before it
+        self.rollouts: list[tuple[State, torch.Tensor] | None] = []  # prior rollouts advanced to the last step
+        #   and the speed of the frame each started from; [i-1] started i steps before it (None: at a missed step)
         self.pending_action = self.torch.zeros(1, 2, device=self.device)
         self.steps = 0
 
@@ -116,6 +131,35 @@ class WorldModelPredictor(Operator):
         )
         return obs.to(self.device), target, wm.action_of(ego[1], ego[2], ego[3])
 
+    def missed_steps(self, seq: int) -> int:
+        """Model steps (seqs on the stride) strictly between the last frame processed and `seq`: 0
+        unless the runtime passed frames over (live mode)."""
+        stride = self.params.stride
+        return max(0, (seq - 1) // stride - self.last_seq // stride)
+
+    def bridge(self, missed: int) -> None:
+        """Carry the state over `missed` model steps without their frames: at each, the state moves
+        on by the transition and the prior's mean with the last action held, and the rollouts one
+        prior step, a missed step starting none; those that would then be older than `horizon`
+        steps at the next frame are dropped unadvanced."""
+        State, n = self.wm.State, self.params.horizon
+        for _ in range(missed):
+            hidden = self.model.transition(self.state, self.pending_action, move=False)
+            self.state = State(hidden, self.model.prior(hidden)[0])
+            self.rollouts = [None, *self.advance(self.rollouts[: n - 1])]
+
+    def advance(self, rollouts: list[tuple[State, torch.Tensor] | None]) -> list[tuple[State, torch.Tensor] | None]:
+        """Each rollout one prior step on with the pending action, moving with the scene."""
+        State, advanced = self.wm.State, []
+        for rollout in rollouts:
+            if rollout is None:
+                advanced.append(None)
+                continue
+            origin, speed = rollout
+            h_pred = self.model.transition(origin, self.pending_action, move=True, speed=speed)
+            advanced.append((State(h_pred, self.model.prior(h_pred)[0]), speed))
+        return advanced
+
     def process(self, frame: Frame) -> dict[str, Output]:
         with self.torch.no_grad():
             return self.step(frame)
@@ -123,9 +167,17 @@ class WorldModelPredictor(Operator):
     def step(self, frame: Frame) -> dict[str, Output]:
         """`process` without gradients: one frame through the model."""
         torch, State = self.torch, self.wm.State
+        gap = 0
         if frame.run != self.run or frame.seq == 0:
             self.run = frame.run
             self.reset()
+        else:
+            gap = self.missed_steps(frame.seq)
+            if gap > self.params.max_gap_steps:
+                self.reset()
+            else:
+                self.bridge(gap)
+        self.last_seq = frame.seq
         obs, target, action = self.observation(frame)
         n = self.params.horizon
         h, w = self.config.image_height, self.config.image_width
@@ -138,17 +190,15 @@ class WorldModelPredictor(Operator):
         posterior = State(hidden, self.model.posterior(hidden, embed)[0])
         scored = not frame.inputs["camera"].meta.get("skip")
         if model_step:
-            advanced = []
-            for origin, speed in self.rollouts:
-                h_pred = self.model.transition(origin, self.pending_action, move=True, speed=speed)
-                advanced.append((State(h_pred, self.model.prior(h_pred)[0]), speed))
+            advanced = self.advance(self.rollouts)
             if scored:
-                batch = [posterior, *(state for state, _ in advanced)]
+                rows = [i for i, rollout in enumerate(advanced) if rollout is not None]
+                batch = [posterior, *(advanced[i][0] for i in rows)]
                 states = State(torch.cat([s.h for s in batch]), torch.cat([s.z for s in batch]))
                 images = self.model.decode(states).permute(0, 2, 3, 1).cpu().numpy()
                 recon = images[0]
-                preds[: len(advanced)] = images[1:]
-                valid[: len(advanced)] = 1
+                preds[rows] = images[1:]
+                valid[rows] = 1
             self.state = posterior
             self.rollouts = [(posterior, obs.speed.reshape(1)), *advanced][:n]
             self.pending_action = torch.from_numpy(action)[None].to(self.device)
@@ -161,6 +211,8 @@ class WorldModelPredictor(Operator):
             "steps": self.steps,
             "trained_frame_step": self.trained_frame_step,
         }
+        if gap:
+            meta["gap_steps"] = gap  # model steps missed just before this frame (a restart: `steps` starts over)
         arrays = {
             "target": target,
             "recon": np.ascontiguousarray(recon, np.float32),

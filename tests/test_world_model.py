@@ -268,6 +268,47 @@ def test_predictor_steps_on_unscored_frames_without_drawing_them(weights):
             assert np.array_equal(out["preds"], expected[seq]["preds"])
 
 
+def test_predictor_bridges_a_gap_with_the_prior_and_restarts_after_a_longer_one(weights):
+    """Live mode passes frames over: after frames 3 and 4 never came, frame 5's state is frame 2's
+    carried two steps by the prior (frame 2's action held) and then observing frame 5; of the
+    predictions only x̂_(5|2) exists. A gap longer than `max_gap_steps` starts the run over."""
+    frames = {seq: sensor_frame("run_a", seq, np.random.default_rng(seq)) for seq in (0, 1, 2, 5)}
+    op = WorldModelPredictor({"model": str(weights), "horizon": 3, "max_gap_steps": 2})
+    for seq in (0, 1, 2):
+        op.process(frames[seq])
+    out = op.process(frames[5])["frame"]
+    assert out.meta["gap_steps"] == 2 and list(out.arrays["pred_valid"]) == [0, 0, 1]
+    assert not out.arrays["preds"][:2].any()
+
+    model, _ = load_world_model(weights)  # independent reference, step by step
+    obs = {seq: op.observation(frame) for seq, frame in frames.items()}
+    seq_obs = Observation(*(torch.cat([obs[s][0][k] for s in (0, 1, 2)], 1) for k in range(4)))
+    taken = torch.from_numpy(np.stack([obs[s][2] for s in (0, 1, 2)]))[None]  # (1, 3, 2)
+    with torch.no_grad():
+        filtered = model.observe(seq_obs, torch.cat([torch.zeros(1, 1, 2), taken[:, :-1]], 1))
+        at_2 = State(filtered.states.h[:, 2], filtered.states.z[:, 2])
+        held = taken[:, 2]
+        state = at_2
+        for _ in range(2):  # frames 3 and 4: what the model expects without looking
+            hidden = model.transition(state, held, move=False)
+            state = State(hidden, model.prior(hidden)[0])
+        hidden = model.transition(state, held, move=False)
+        at_5 = State(hidden, model.posterior(hidden, model.embed(obs[5][0])[:, 0])[0])
+        recon = model.decode(at_5)[0].permute(1, 2, 0).numpy()
+        speed = seq_obs.speed[:, 2, 0]
+        from_2 = model.imagine(at_2, held[:, None].expand(1, 3, 2), 3, speed=speed).rgb[0, -1].permute(1, 2, 0)
+    assert np.allclose(out.arrays["recon"], recon, atol=1e-5)
+    assert np.allclose(out.arrays["preds"][2], from_2.numpy(), atol=1e-5)
+
+    restarted = WorldModelPredictor({"model": str(weights), "horizon": 3, "max_gap_steps": 2})
+    for seq in (0, 1):
+        restarted.process(frames[seq])
+    out = restarted.process(frames[5])["frame"]  # 3 steps missed
+    fresh = WorldModelPredictor({"model": str(weights), "horizon": 3}).process(frames[5])["frame"]
+    assert out.meta["gap_steps"] == 3 and out.meta["steps"] == 1 and not out.arrays["pred_valid"].any()
+    assert np.array_equal(out.arrays["recon"], fresh.arrays["recon"])
+
+
 def test_predictor_fails_early_on_missing_or_mismatched_weights(tmp_path, weights):
     with pytest.raises(WeightsError, match="not found"):
         WorldModelPredictor({"model": str(tmp_path / "nothing.safetensors")})
