@@ -11,7 +11,8 @@ clock, and matches them by (run, seq). Reported:
   first camera message's arrival to the last result's), so a graph that falls behind is not
   flattered by a backlog it clears after the camera stopped;
 - `frames_partial` (fusion's live deadline, `deadline_ms`, passed without every difference map),
-  `frames_dropped` (no result ever arrived) and `frames_failed` (an error marker arrived instead);
+  `frames_dropped` (no result arrived, or a superseded marker: an operator passed the frame over for
+  a newer one, `frames_superseded`) and `frames_failed` (an error marker arrived instead);
   `frames_missed` is their sum;
 - `latency_ms`: from the camera message's arrival to the refined map's (`camera_to_refined`) and to
   the frame result's (`camera_to_result`) at the same subscriber, p50 / p99 / max. It leaves out
@@ -20,7 +21,8 @@ clock, and matches them by (run, seq). Reported:
 - `cpu_ms_per_frame`: per operator, its own work per frame it computed, and `runtime_cpu_ms` per
   frame the runtime's (decoding, joining, acks), from the replicas' stats as the launcher prints
   them; `queue_ms` shows the operator a frame waited for. `counts`: per replica, frames in and out,
-  frames its joiner dropped and ring payloads overwritten before it read them (`lost_payloads`).
+  frames its joiner dropped, frames it passed over for a newer one (`superseded`) and ring payloads
+  overwritten before it read them (`lost_payloads`).
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from umad_common import LIVE_GRAPH
 from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.benchmarks.pipeline import stage_times
 
-COUNTS = ("frames_in", "frames_out", "dropped", "lost_payloads", "errors")  # per replica, from its stats
+COUNTS = ("frames_in", "frames_out", "dropped", "superseded", "lost_payloads", "errors")  # per replica, from its stats
 WATCHED = {"camera": ("replayer", "camera"), "refined": ("refine", "refined"), "result": ("result", "result")}
 
 
@@ -92,7 +94,7 @@ class ArrivalListener:
                 if msg is None:
                     self.arrivals.unreadable += 1
                 elif not msg.meta.get("eos"):
-                    if not msg.meta.get("error"):  # an error marker is no map: not timed, counted as failed
+                    if not (msg.meta.get("error") or msg.meta.get("superseded")):  # a marker is no map: not timed
                         self.arrivals.times[name].setdefault((msg.run, msg.seq), arrived)
                     if name == "result":
                         self.arrivals.result_meta.setdefault((msg.run, msg.seq), msg.meta)
@@ -161,9 +163,10 @@ def frame_counts(arrivals: Arrivals, sent: int) -> dict:
     """Results kept, partial, failed and dropped, and frames/s kept over the stream's wall time."""
     metas = arrivals.result_meta
     failed = sum(1 for meta in metas.values() if meta.get("error"))
-    partial = sum(1 for meta in metas.values() if meta.get("partial") and not meta.get("error"))
-    kept = len(metas) - failed - partial
-    dropped = max(0, sent - len(metas))
+    superseded = sum(1 for meta in metas.values() if meta.get("superseded"))
+    partial = sum(1 for meta in metas.values() if meta.get("partial"))  # markers carry no `partial`
+    kept = len(metas) - failed - superseded - partial
+    dropped = max(0, sent - len(metas)) + superseded
     cameras, results = arrivals.times["camera"].values(), arrivals.times["result"].values()
     stream_s = max(results) - min(cameras) if cameras and results else 0.0
     return {
@@ -171,6 +174,7 @@ def frame_counts(arrivals: Arrivals, sent: int) -> dict:
         "frames_partial": partial,
         "frames_failed": failed,
         "frames_dropped": dropped,
+        "frames_superseded": superseded,
         "frames_missed": partial + failed + dropped,
         "stream_s": stream_s,
         "fps_kept": kept / stream_s if stream_s > 0 else 0.0,
