@@ -1,7 +1,11 @@
-"""The shipped live graph, its per-frame result operator and its Foxglove view, and `umad bench live`."""
+"""The shipped live graph, its per-frame result operator and its Foxglove view, `umad bench live`,
+and live mode's rule: an operator takes the newest frame and passes over the ones it never got."""
+
+import json
 
 import numpy as np
 import pytest
+import yaml
 from pydantic import ValidationError
 
 from operators.frame_result import FrameResult, frame_result, mask_boxes
@@ -97,3 +101,62 @@ def test_bench_live_reports_kept_missed_latency_and_cpu_per_operator(hub_endpoin
     operators = result["cpu_ms_per_frame"]
     assert {"replayer", "world_model", "fusion", "segment", "refine", "result"} <= set(operators)
     assert "mnad" not in operators and operators["world_model"]["cpu_ms"] > 0
+
+
+@pytest.mark.slow
+def test_a_slow_ordered_operator_in_live_mode_passes_over_lost_and_stale_frames_and_never_stalls(
+    tmp_path, hub_endpoint
+):
+    """A realtime source at 20 Hz, an ordered operator that needs 0.15 s a frame and never gets
+    frame 5 whole (its `extra` payload is lost), and a sink. Waiting in order, the operator stalled
+    at frame 5 for the rest of the run; working through its backlog, its latency would grow with
+    the run. Now it processes the newest frame it has, the rest are passed over and counted, the
+    sink acks the passed-over frames' markers, and the run's last frame reaches the sink."""
+    frames = 80
+    graph = {
+        "name": "toy_live",
+        "hub": hub_endpoint,
+        "operators": [
+            {
+                "id": "source",
+                "uses": "tests.toy_ops:LossyPairSource",
+                "params": {
+                    "frames": frames,
+                    "pacing": "realtime",
+                    "rate_hz": 20,
+                    "lose_extra": [5],
+                    "ack_timeout_s": 60,
+                },
+            },
+            {
+                "id": "ordered",
+                "uses": "tests.toy_ops:SlowOrdered",
+                "inputs": {"x": "source/value", "extra": "source/extra"},
+                "params": {"delay_s": 0.15, "log": str(tmp_path / "ordered.jsonl")},
+            },
+            {
+                "id": "sink",
+                "uses": "tests.toy_ops:Logger",
+                "inputs": {"x": "ordered/y"},
+                "params": {"log": str(tmp_path / "sink.jsonl")},
+            },
+        ],
+    }
+    path = tmp_path / "graph.yaml"
+    path.write_text(yaml.safe_dump(graph, sort_keys=False))
+    result = run_umad("launch", str(path), timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+    def seqs(name: str) -> list[int]:
+        return [json.loads(line)["seq"] for line in (tmp_path / name).read_text().splitlines()]
+
+    processed, reached = seqs("ordered.jsonl"), seqs("sink.jsonl")
+    assert processed == sorted(set(processed)) and 5 not in processed  # in order, the lost frame passed over
+    assert processed[-1] == frames - 1 and reached[-1] == frames - 1  # the stream went on to the run's end
+    assert set(reached) <= set(processed) and len(processed) < frames - 1  # stale frames passed over too
+    lines = result.stdout.splitlines()
+    header = next(line for line in lines if line.endswith("(times: ms per frame)")).split()
+    ordered = next(line for line in lines if line.startswith("ordered.r0")).split()
+    passed = int(ordered[header.index("passed")])
+    assert passed >= 1 and len(processed) + passed == frames  # every frame processed or counted
+    assert "given up" not in result.stdout  # the sink acked every frame, passed-over ones by their markers

@@ -160,3 +160,40 @@ class ImageStats(Operator):
     def process(self, frame):
         rgb = frame.inputs["image"].arrays["rgb"].astype(np.float32)
         return {"stats": Output({"x": np.array([rgb.mean(), rgb.max()], np.float32) * self.params.scale})}
+
+
+class LossyPairSource(CounterSource):
+    """A counter source with a second output, `extra`, left out at the seqs in `lose_extra`: to an
+    operator that joins both, those frames lose a payload on the way."""
+
+    kind = "toy_lossy_pair"
+    outputs = ("value", "extra")
+
+    class Params(CounterSource.Params):
+        lose_extra: list[int] = []
+
+    def frames(self):
+        for frame in super().frames():
+            if frame.seq not in self.params.lose_extra:
+                frame.outputs["extra"] = frame.outputs["value"]
+            yield frame
+
+
+class SlowOrdered(Operator):
+    """Ordered and slow: joins `x` and `extra`, takes `delay_s`, logs the frame and passes `x` on."""
+
+    kind = "toy_slow_ordered"
+    inputs = (Input("x"), Input("extra"))
+    outputs = ("y",)
+    ordered = True
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        delay_s: float = 0.0
+        log: str = ""
+
+    def process(self, frame):
+        time.sleep(self.params.delay_s)
+        with Path(self.params.log).open("a") as f:
+            f.write(json.dumps({"run": frame.run, "seq": frame.seq}) + "\n")
+        return {"y": Output({"x": frame.inputs["x"].arrays["x"]})}
