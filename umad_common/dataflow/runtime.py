@@ -599,7 +599,7 @@ class OperatorRuntime:
             self._ack(run, seq)
 
     def _finish(self, frame: Frame) -> None:
-        """Process one joined frame (or pass on its error or skip marker), cache and publish the result."""
+        """Process one joined frame (or pass on its marker: `_marker_meta`), cache and publish the result."""
         self.stats.frames_in += 1
         payloads = self._payloads_for(frame)
         self._cache.put((frame.run, frame.seq), payloads)
