@@ -35,6 +35,7 @@ from umad_common.segmentation.base import (
 )
 
 Triplet = tuple[float, float, float]
+CROSS = ndimage.generate_binary_structure(2, 1)  # 4-connectivity
 
 
 @dataclass(frozen=True)
@@ -255,14 +256,14 @@ class Geometry(SegmenterMethod):
         owner = np.full(shape, -1, np.int64)
         rest_labels = masks_to_labels(rest) if len(rest) else np.full(shape, -1, np.int64)
         joined = self._segments_joining(hit, rest_labels, count)
-        structure = ndimage.generate_binary_structure(2, 1)
+        segment_object = np.append(joined, -1)[rest_labels]  # (h, w) the object each pixel's segment joins, -1 none
+        hit_boxes = ndimage.find_objects(hit + 3, max_label=count + 2)[2:]  # [k]: bounding box of object k's hits
         median_depth = [np.median(depth[labels == k]) for k in range(count)]
         for k in np.argsort(median_depth)[::-1]:  # far first: nearer objects overwrite
-            region = hit == k
-            if p.close_px:
-                region = ndimage.binary_closing(region, structure, iterations=p.close_px, border_value=0)
-            region = ndimage.binary_fill_holes(region) | np.isin(rest_labels, np.flatnonzero(joined == k))
-            owner[region] = k
+            if hit_boxes[k] is not None:
+                window = grown_box(hit_boxes[k], p.close_px + 1, shape)
+                owner[window][hit_region(hit[window] == k, p.close_px)] = k
+            owner[segment_object == k] = k
         ids, sizes = np.unique(owner[owner >= 0], return_counts=True)
         ids = ids[np.argsort(-sizes, kind="stable")]
         return owner[None] == ids[:, None, None]
@@ -281,6 +282,21 @@ class Geometry(SegmenterMethod):
         best = votes.argmax(axis=1)
         enough = votes[np.arange(segments), best] >= self.params.share * np.maximum(hits_per_segment, 1)
         return np.where(enough & (hits_per_segment > 0), best, -1)
+
+
+def grown_box(box: tuple[slice, slice], margin: int, shape: tuple[int, int]) -> tuple[slice, slice]:
+    """The (rows, cols) slices of `box` grown by `margin` pixels on every side, within an image of `shape`."""
+    return tuple(slice(max(s.start - margin, 0), min(s.stop + margin, n)) for s, n in zip(box, shape, strict=True))
+
+
+def hit_region(hits: np.ndarray, close_px: int) -> np.ndarray:
+    """The region an object's hit pixels (h, w) bool make: closed with radius `close_px` (4-connected,
+    nothing outside the image), holes filled. Given a window around the hits grown by close_px + 1 it
+    is the whole image's answer cut to the window: the closing reaches close_px beyond the hits, and
+    the ring left around it is background that reaches the image's border."""
+    if close_px:
+        hits = ndimage.binary_closing(hits, CROSS, iterations=close_px, border_value=0)
+    return ndimage.binary_fill_holes(hits)
 
 
 def rest_class(name: str, options: dict[str, Any]) -> type[SegmenterMethod] | None:
