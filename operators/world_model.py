@@ -89,6 +89,7 @@ class WorldModelPredictor(Operator):
         self.device = resolve_device(self.params.device)
         self.model_path = self.context.resolve(self.params.model)
         self.model, _ = world_model.load_world_model(self.model_path, self.device)
+        self.model.fold_upsampling()
         self.config = self.model.config
         self.trained_frame_step = int(self.config.frame_step)
         self.run: str | None = None

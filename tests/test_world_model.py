@@ -16,6 +16,7 @@ from umad_common.models.world_model import (
     MotionWarp,
     Observation,
     State,
+    UpsampledConv,
     WorldModel,
     WorldModelConfig,
     lidar_range_image,
@@ -122,6 +123,28 @@ def test_a_model_saved_before_the_road_flow_loads_without_it():
     assert WorldModelConfig.from_dict(saved).ground_flow is True
     del saved["ground_flow"]
     assert WorldModelConfig.from_dict(saved).ground_flow is False
+
+
+def test_upsampled_conv_is_upsampling_then_the_convolution():
+    torch.manual_seed(0)
+    upsample, conv = torch.nn.Upsample(scale_factor=2.0), torch.nn.Conv2d(5, 7, 3, padding=1)
+    x = torch.randn(2, 5, 6, 9)
+    with torch.no_grad():
+        assert torch.allclose(UpsampledConv(upsample, conv)(x), conv(upsample(x)), atol=1e-5)
+    with pytest.raises(ValueError, match="nearest x2"):
+        UpsampledConv(torch.nn.Upsample(scale_factor=2.0, mode="bilinear"), conv)
+    with pytest.raises(ValueError, match="3x3"):
+        UpsampledConv(upsample, torch.nn.Conv2d(5, 7, 5, padding=2))
+
+
+def test_a_folded_decoder_draws_the_same_images():
+    model = tiny_model()
+    state = State(torch.randn(3, model.config.deter_dim), torch.randn(3, model.config.stoch_dim))
+    with torch.no_grad():
+        before = model.decode(state)
+        model.fold_upsampling()
+        assert any(isinstance(layer, UpsampledConv) for layer in model.image_decoder[-1])
+        assert torch.allclose(model.decode(state), before, atol=1e-6)
 
 
 def test_config_rejects_image_size_not_divisible():
