@@ -333,6 +333,28 @@ def test_geometry_tiles_the_frame_with_the_rest_method_and_grows_objects_into_it
     np.testing.assert_array_equal(masks[0], box_pixels()), "the object's mask is its whole image segment"
 
 
+def test_an_object_region_grown_in_a_window_around_its_hits_is_the_whole_images_answer():
+    from scipy import ndimage
+
+    from umad_common.segmentation.geometry import CROSS, grown_box, hit_region
+
+    rng = np.random.default_rng(0)
+    for _ in range(300):  # scattered hits and a blob anywhere, often touching the image's border
+        h, w = rng.integers(3, 24, 2)
+        hits = rng.random((h, w)) < rng.uniform(0.02, 0.5)
+        top, left = rng.integers(0, h), rng.integers(0, w)
+        hits[top : top + rng.integers(1, 8), left : left + rng.integers(1, 8)] = True
+        close_px = int(rng.integers(0, 4))
+        whole = hits
+        if close_px:
+            whole = ndimage.binary_closing(hits, CROSS, iterations=close_px, border_value=0)
+        whole = ndimage.binary_fill_holes(whole)
+        window = grown_box(ndimage.find_objects(hits.astype(int))[0], close_px + 1, (h, w))
+        region = np.zeros((h, w), bool)
+        region[window] = hit_region(hits[window], close_px)
+        assert np.array_equal(region, whole)
+
+
 def test_geometry_reads_the_camera_and_mounts_from_the_sensor_setup(tmp_path):
     from umad_common.datasets.anovox import read_sensor_setup
     from umad_common.datasets.synthetic.generator import sensor_setup
