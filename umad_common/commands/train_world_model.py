@@ -48,6 +48,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--holdout", type=int, default=None, help="last N normal drives kept out for evaluation (default 1)"
     )
     parser.add_argument("--frame-step", type=int, default=None, help="dataset frames per model step (default 1)")
+    parser.add_argument(
+        "--relight",
+        type=float,
+        default=None,
+        help="share of training windows re-lit with a random gamma, brightness and colour cast (default 0)",
+    )
     add_device_argument(parser)
 
 
@@ -69,7 +75,7 @@ def configs_of(args: argparse.Namespace):
                 "objects, as MODEL.json"
             ) from None
         epochs, seed = int(saved.get("epochs", epochs)), int(saved.get("seed", seed))
-    overrides = {name: getattr(args, name) for name in ("batch_size", "sequence_length", "holdout")}
+    overrides = {name: getattr(args, name) for name in ("batch_size", "sequence_length", "holdout", "relight")}
     try:
         train = TrainConfig(**{**asdict(train), **{k: v for k, v in overrides.items() if v is not None}})
     except ValueError as exc:

@@ -61,6 +61,8 @@ class TrainConfig:
     holdout: int = 1  # last normal drives (sorted) kept out of training for evaluation
     mirror: float = 0.0  # share of training windows mirrored left to right (camera, lidar, route and
     #   steering together): a drive the model never saw, at no cost in training time
+    relight: float = 0.0  # share of training windows re-lit: one random gamma, brightness and colour cast
+    #   over all the window's frames (`relight_window`), for light the normal drives show rarely or never
     bf16: bool = True  # bfloat16 autocast and channels-last convolutions (2-3x faster on CPUs with
     #   AVX-512 BF16; training falls back to float32 where the CPU has none); the loss stays float32
 
@@ -72,6 +74,8 @@ class TrainConfig:
             )
         if not 0.0 <= self.mirror <= 1.0:
             raise ValueError(f"mirror {self.mirror} must be a share of the windows, between 0 and 1")
+        if not 0.0 <= self.relight <= 1.0:
+            raise ValueError(f"relight {self.relight} must be a share of the windows, between 0 and 1")
         if not 1 <= self.prediction_starts <= self.sequence_length - self.prediction_steps:
             raise ValueError(
                 f"prediction_starts {self.prediction_starts} must be between 1 and sequence_length - prediction_steps "
@@ -126,10 +130,15 @@ def load_normal_drives(data: Path, config: WorldModelConfig, holdout: int) -> tu
 
 
 def observation_batch(
-    drives: list[DriveArrays], windows: list[tuple[int, int]], length: int, mirrored: list[bool] | None = None
+    drives: list[DriveArrays],
+    windows: list[tuple[int, int]],
+    length: int,
+    mirrored: list[bool] | None = None,
+    lights: list[Light | None] | None = None,
 ):
     """Windows (drive index, start) -> (Observation, prev_actions (B, L, 2)) tensors; `mirrored[i]`
-    turns window i into its left-right mirror image (`mirror_window`)."""
+    turns window i into its left-right mirror image (`mirror_window`), `lights[i]` re-lights it
+    (`relight_window`)."""
     rgb, lidar, route, speed, prev = [], [], [], [], []
     for i, (d, start) in enumerate(windows):
         drive = drives[d]
@@ -141,6 +150,8 @@ def observation_batch(
         window = (drive.rgb[sl], drive.lidar[sl], drive.route[sl], actions)
         if mirrored is not None and mirrored[i]:
             window = mirror_window(*window)
+        if lights is not None and lights[i] is not None:
+            window = (relight_window(window[0], lights[i]), *window[1:])
         rgb.append(window[0])
         lidar.append(window[1])
         route.append(window[2])
@@ -163,6 +174,32 @@ def mirror_window(rgb: np.ndarray, lidar: np.ndarray, route: np.ndarray, actions
     lidar[:, 1] *= -1
     actions = actions * np.array([1.0, -1.0], np.float32)
     return rgb[:, :, ::-1], lidar, route[:, :, ::-1], actions
+
+
+@dataclass(frozen=True)
+class Light:
+    """One re-lighting of a window: x' = clip(gain_c * x ** gamma) on [0, 1] colour values."""
+
+    gamma: float
+    gain: tuple[float, float, float]
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator) -> Light:
+        """Gamma 0.6-1.6 (contrast of shadows and highlights), brightness x 0.5-1.6 and a colour cast
+        of x 0.85-1.15 per channel, each log-uniform or uniform: from dusk to a harsh noon."""
+        gamma = float(np.exp(rng.uniform(np.log(0.6), np.log(1.6))))
+        brightness = float(np.exp(rng.uniform(np.log(0.5), np.log(1.6))))
+        cast = rng.uniform(0.85, 1.15, size=3)
+        return cls(gamma, tuple(float(brightness * c) for c in cast))
+
+
+def relight_window(rgb: np.ndarray, light: Light) -> np.ndarray:
+    """(L, H, W, 3) uint8 frames of a window under `light` (the same for every frame, so the scene
+    still moves as it did; only its light changes)."""
+    lut = (np.arange(256, dtype=np.float32) / 255.0) ** light.gamma  # one table per channel
+    tables = np.clip(lut[None, :] * np.array(light.gain, np.float32)[:, None], 0.0, 1.0)
+    tables = (tables * 255.0 + 0.5).astype(np.uint8)  # (3, 256)
+    return np.stack([tables[c][rgb[..., c]] for c in range(3)], axis=-1)
 
 
 def scale_speed(obs: Observation, config: WorldModelConfig) -> Observation:
@@ -362,7 +399,8 @@ def train_world_model(
         for step in range(steps_per_epoch):
             batch = windows[step * train.batch_size : (step + 1) * train.batch_size]
             mirrored = list(rng.random(len(batch)) < train.mirror)
-            obs, prev_actions = observation_batch(drives, batch, train.sequence_length, mirrored)
+            lights = [Light.draw(rng) if rng.random() < train.relight else None for _ in batch] if train.relight else None
+            obs, prev_actions = observation_batch(drives, batch, train.sequence_length, mirrored, lights)
             obs, prev_actions = scale_speed(obs, model_config).to(device), prev_actions.to(device)
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
                 result = model.observe(obs, prev_actions, sample=train.sample_posterior)
