@@ -466,6 +466,52 @@ def test_a_mirrored_window_is_the_drive_mirrored_in_the_world():
         TrainConfig(mirror=1.5)
 
 
+def test_a_relit_window_keeps_its_scene_and_puts_every_frame_under_the_same_light():
+    """Re-lighting maps each colour value through one table per channel for the whole window: the
+    identity light changes nothing, equal pixels stay equal across frames, order within a channel is
+    kept, brighter gains give brighter frames, and only the camera changes."""
+    from umad_common.training.train_world_model import (
+        DriveArrays,
+        Light,
+        TrainConfig,
+        observation_batch,
+        relight_window,
+    )
+
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (4, 6, 8, 3), dtype=np.uint8)
+    rgb[2] = rgb[0]  # the same picture twice in the window
+    np.testing.assert_array_equal(relight_window(rgb, Light(1.0, (1.0, 1.0, 1.0))), rgb)
+    light = Light.draw(np.random.default_rng(0))
+    assert 0.6 <= light.gamma <= 1.6 and all(0.5 * 0.85 <= g <= 1.6 * 1.15 for g in light.gain)
+    relit = relight_window(rgb, light)
+    np.testing.assert_array_equal(relit[2], relit[0])
+    for c in range(3):
+        order = np.argsort(rgb[..., c].ravel(), kind="stable")
+        assert np.all(np.diff(relit[..., c].ravel()[order].astype(int)) >= 0)
+    assert (
+        relight_window(rgb, Light(1.0, (1.5, 1.5, 1.5))).mean()
+        > rgb.mean()
+        > relight_window(rgb, Light(1.0, (0.5,) * 3)).mean()
+    )
+
+    drive = DriveArrays(
+        "d",
+        rgb,
+        rng.random((4, 4, 8, 16)).astype(np.float16),
+        rng.integers(0, 256, (4, 16, 16), dtype=np.uint8),
+        np.ones(4, np.float32),
+        np.zeros((4, 2), np.float32),
+    )
+    plain, _ = observation_batch([drive], [(0, 0)], 4)
+    lit, _ = observation_batch([drive], [(0, 0)], 4, lights=[light])
+    np.testing.assert_array_equal(lit.rgb[0].permute(0, 2, 3, 1).mul(255).round().byte().numpy(), relit)
+    np.testing.assert_array_equal(lit.lidar, plain.lidar)
+    np.testing.assert_array_equal(lit.route, plain.route)
+    with pytest.raises(ValueError, match="relight 2"):
+        TrainConfig(relight=2.0)
+
+
 def test_training_rollouts_start_from_consecutive_posterior_states_and_match_their_targets():
     from umad_common.training.train_world_model import (
         TrainConfig,

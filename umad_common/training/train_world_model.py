@@ -399,7 +399,9 @@ def train_world_model(
         for step in range(steps_per_epoch):
             batch = windows[step * train.batch_size : (step + 1) * train.batch_size]
             mirrored = list(rng.random(len(batch)) < train.mirror)
-            lights = [Light.draw(rng) if rng.random() < train.relight else None for _ in batch] if train.relight else None
+            lights = (
+                [Light.draw(rng) if rng.random() < train.relight else None for _ in batch] if train.relight else None
+            )
             obs, prev_actions = observation_batch(drives, batch, train.sequence_length, mirrored, lights)
             obs, prev_actions = scale_speed(obs, model_config).to(device), prev_actions.to(device)
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
