@@ -24,6 +24,7 @@ from umad_common.differences import (
     calibrated,
     load_calibration,
     minmax,
+    robust,
 )
 from umad_common.models.device import DeviceName, device_field
 
@@ -44,9 +45,10 @@ class Difference(Operator):
             "abs",
             description="abs | mse | ssim | perceptual | temporal, or `package.module:Class` of a DifferenceMetric",
         )
-        normalization: Literal["minmax", "calibrated"] = Field(
+        normalization: Literal["minmax", "robust", "calibrated"] = Field(
             "minmax",
-            description="minmax: per frame to [0, 1] (paper); calibrated: r/(r+q) with q fitted on normal frames",
+            description="minmax: per frame to [0, 1] (paper); robust: z/(1+z), z = (r - median)/(P99.9 - median) "
+            "per frame (ours); calibrated: r/(r+q) with q fitted on normal frames",
         )
         calibration: str = Field(
             "umad_common/assets/calibration.json",
@@ -92,7 +94,10 @@ class Difference(Operator):
     def process(self, frame: Frame) -> dict[str, Output]:
         target, recon, preds, pred_valid = (input_array(frame, "frame", name, self.kind) for name in FRAME_ARRAYS)
         raw = self.metric(target, recon, preds, pred_valid)
-        score = minmax(raw) if self.scale is None else calibrated(raw, self.scale)
+        if self.params.normalization == "calibrated":
+            score = calibrated(raw, self.scale)
+        else:
+            score = robust(raw) if self.params.normalization == "robust" else minmax(raw)
         meta = {"metric": self.params.metric, "normalization": self.params.normalization}
         if self.scale is not None:
             meta["calibration_scale"] = self.scale

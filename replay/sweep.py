@@ -9,8 +9,11 @@ configurations at their best pixel-F1 thresholds. The same pass feeds the report
 (`umad_common.metrics.diagnosis`): where each map's top 1 % of pixels lies by semantic class, and the
 anomaly's frame-relative score against frames since it first became visible.
 
-Rows and settings: the paper's 15 weight rows in its order, then ours (`WeightRow.extra`); per
-segmenter the refinements mean, max, single (the paper's) and single_keep_raw (ours), plus no mask.
+Rows and settings: the paper's 15 weight rows in its order, then ours (`WeightRow.extra`): two more
+groups, then every group again on `robust`-normalised maps (`umad_common.differences.robust` of the
+logged min-max maps, equal to robust normalisation of the raw maps), scored with no mask and `mean`
+refinement only; per segmenter the refinements mean, max, single (the paper's) and single_keep_raw
+(ours), plus no mask.
 The log's metadata gives the protocol (`replay.protocol`): data, models, the PD network.
 """
 
@@ -28,6 +31,7 @@ from tqdm import tqdm
 from replay.frames import FrameRecord, LogStats, frames_from_log
 from replay.protocol import run_protocol
 from umad_common.dataflow.mcap_log import LogError, describe_loss, read_metadata, recording_outcome
+from umad_common.differences.normalization import robust
 from umad_common.metrics.components import ComponentMetrics
 from umad_common.metrics.diagnosis import Diagnosis
 from umad_common.metrics.pixel import PixelMetrics
@@ -53,6 +57,12 @@ class WeightRow:
 
     weights: dict[str, Fraction]  # metric -> weight, metrics in PAPER_METRICS order
     extra: bool = False  # True: a row of ours, not in the paper's table
+    normalization: str = "minmax"  # of the maps it fuses: minmax (as logged, the paper's) or robust (ours)
+
+    @property
+    def modes(self) -> tuple[str, ...]:
+        """The refinements scored for this row: all of them on the paper's maps, `mean` on ours."""
+        return REFINE_MODES if self.normalization == "minmax" else ("mean",)
 
 
 def paper_weight_rows() -> list[WeightRow]:
@@ -65,9 +75,16 @@ def paper_weight_rows() -> list[WeightRow]:
 
 
 def weight_rows() -> list[WeightRow]:
-    """Every row the sweep computes: the paper's 15, then ours (EXTRA_GROUPS at equal weights)."""
+    """Every row the sweep computes: the paper's 15, then ours: EXTRA_GROUPS at equal weights, then
+    all of those groups again on robust-normalised maps."""
     extras = [WeightRow({m: Fraction(1, len(group)) for m in group}, extra=True) for group in EXTRA_GROUPS]
-    return paper_weight_rows() + extras
+    minmax_rows = paper_weight_rows() + extras
+    return minmax_rows + [WeightRow(row.weights, extra=True, normalization="robust") for row in minmax_rows]
+
+
+def normalised_maps(diffs: dict[str, np.ndarray], normalization: str) -> dict[str, np.ndarray]:
+    """A frame's logged (min-max) difference maps as a row of that normalization fuses them."""
+    return diffs if normalization == "minmax" else {m: robust(d) for m, d in diffs.items()}
 
 
 class MaskSet:
@@ -106,21 +123,23 @@ class MaskSet:
             scores[self.nonempty] = np.maximum.reduceat(values, self.starts)
         return scores
 
-    def refine_all(self, fused: np.ndarray) -> dict[str, np.ndarray]:
-        """Every REFINE_MODES map of one fused map (uncovered pixels keep their score; `single`
-        gives every pixel outside the winning mask the frame's lowest score)."""
+    def refine_all(self, fused: np.ndarray, modes: tuple[str, ...] = REFINE_MODES) -> dict[str, np.ndarray]:
+        """The `modes` (of REFINE_MODES) maps of one fused map (uncovered pixels keep their score;
+        `single` gives every pixel outside the winning mask the frame's lowest score)."""
         fused = np.asarray(fused, dtype=np.float32)
         lowest = np.full_like(fused, fused.min())
         if self.masks.shape[0] == 0:
-            return {"mean": fused.copy(), "max": fused.copy(), "single": lowest, "single_keep_raw": fused.copy()}
+            empty = {"mean": fused, "max": fused, "single": lowest, "single_keep_raw": fused}
+            return {mode: empty[mode].copy() for mode in modes}
         mean = self.mean_scores(fused)
-        single = only_the_best(mean)
-        return {
-            "mean": paint_masks(mean, self.masks, fused),
-            "max": paint_masks(self.max_scores(fused), self.masks, fused),
-            "single": paint_masks(single, self.masks, lowest),
-            "single_keep_raw": paint_masks(single, self.masks, fused),
+        single = only_the_best(mean) if {"single", "single_keep_raw"} & set(modes) else mean
+        paint = {
+            "mean": lambda: paint_masks(mean, self.masks, fused),
+            "max": lambda: paint_masks(self.max_scores(fused), self.masks, fused),
+            "single": lambda: paint_masks(single, self.masks, lowest),
+            "single_keep_raw": lambda: paint_masks(single, self.masks, fused),
         }
+        return {mode: paint[mode]() for mode in modes}
 
 
 @dataclass(frozen=True)
@@ -174,7 +193,9 @@ class SweepResult:
     diagnosis: dict = field(default_factory=dict)  # Diagnosis.compute(): error location, score since visible
 
     def row_label(self, row: int) -> str:
-        return weights_label(self.rows[row].weights)
+        label = weights_label(self.rows[row].weights)
+        normalization = self.rows[row].normalization
+        return label if normalization == "minmax" else f"{label}, {normalization}"
 
     def _ops_in_order(self) -> list[str]:
         rank = {"gt": 0, "sam": 2}
@@ -261,18 +282,19 @@ class Sweep:
         usable = [i for i, row in enumerate(self.rows) if set(row.weights) <= set(frame.diffs)]
         if self.default_row is None and usable:
             self.default_row = max(usable, key=lambda i: (len(self.rows[i].weights), not self.rows[i].extra, i))
+        maps = {n: normalised_maps(frame.diffs, n) for n in {self.rows[i].normalization for i in usable}}
         pictures: dict[str, np.ndarray] = {}
         followed: dict[str, np.ndarray] = {}  # the default row's maps whose anomaly score the diagnosis follows
         for i in usable:
             self.rows_seen.add(i)
             weights = {m: float(w) for m, w in self.rows[i].weights.items()}
-            fused = fuse({m: frame.diffs[m] for m in weights}, weights, shape)
+            fused = fuse({m: maps[self.rows[i].normalization][m] for m in weights}, weights, shape)
             self._count(Config(i, None, "none"), fused, labels)
             if i == self.default_row:
                 self._scenario(frame.run, "no mask").update(fused, labels)
                 pictures["fused"] = followed["fused"] = fused
             for op, mask_set in mask_sets.items():
-                for mode, refined in mask_set.refine_all(fused).items():
+                for mode, refined in mask_set.refine_all(fused, self.rows[i].modes).items():
                     self._count(Config(i, op, mode), refined, labels)
                     if i == self.default_row:
                         self._scenario(frame.run, f"{segmenters.get(op, op)} {mode}").update(refined, labels)
@@ -346,16 +368,17 @@ def model_size_inputs(frame: FrameRecord) -> tuple[tuple[int, int], np.ndarray, 
 
 def configuration_map(
     frame: FrameRecord,
-    weights: dict[str, Fraction],
+    row: WeightRow,
     config: Config,
     shape: tuple[int, int],
     masks: dict[str, np.ndarray],
 ) -> np.ndarray | None:
     """One configuration's score map of a frame, or None when the frame lacks a map or mask it needs."""
-    if not set(weights) <= set(frame.diffs) or (config.segmenter is not None and config.segmenter not in masks):
+    if not set(row.weights) <= set(frame.diffs) or (config.segmenter is not None and config.segmenter not in masks):
         return None
-    float_weights = {m: float(w) for m, w in weights.items()}
-    fused = fuse({m: frame.diffs[m] for m in float_weights}, float_weights, shape)
+    float_weights = {m: float(w) for m, w in row.weights.items()}
+    maps = normalised_maps({m: frame.diffs[m] for m in float_weights}, row.normalization)
+    fused = fuse(maps, float_weights, shape)
     if config.segmenter is None:
         return fused
     return refine(fused, masks[config.segmenter], mode=config.mode, uncovered="keep")
@@ -410,7 +433,7 @@ def component_pass(
             continue
         shape, labels, masks = model_size_inputs(frame)
         for name, config in configs.items():
-            score_map = configuration_map(frame, result.rows[config.row].weights, config, shape, masks)
+            score_map = configuration_map(frame, result.rows[config.row], config, shape, masks)
             if score_map is not None:
                 metrics[name].update(score_map, labels)
     return {name: m.compute() for name, m in metrics.items()}

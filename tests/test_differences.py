@@ -30,6 +30,7 @@ from umad_common.differences import (
     calibrated,
     load_calibration,
     minmax,
+    robust,
 )
 from umad_common.differences.perceptual import PerceptualDifference
 from umad_common.models.feature_net import FeatureNet, load_feature_net, save_feature_net
@@ -272,6 +273,26 @@ def test_minmax_and_calibrated_normalisation():
     assert scores.dtype == np.float32 and scores[3] < 1.0
 
 
+def test_robust_normalisation_measures_pixels_against_the_frames_bulk():
+    """z / (1 + z), z = (r - median) / (P99.9 - median): 0.5 at the frame's 99.9th percentile, 0 at or
+    below the median, zeros for a constant map, and unchanged by any positive affine change of r
+    (so the sweep may apply it to logged min-max maps)."""
+    rng = np.random.default_rng(0)
+    raw = rng.gamma(2.0, 1.0, (64, 96)).astype(np.float32)
+    raw[10, 10] = 1000.0  # one extreme pixel sets min-max's scale, not robust's
+    median, high = np.percentile(raw, [50, 99.9])
+    scores = robust(raw)
+    assert scores.dtype == np.float32 and scores.shape == raw.shape
+    assert scores[raw <= median].max() == 0.0 and 0.0 <= scores.min() and scores.max() < 1.0
+    expected = (raw[5, 5] - median) / (high - median)
+    assert scores[5, 5] == pytest.approx(max(expected, 0) / (1 + max(expected, 0)), rel=1e-5)
+    assert np.median(scores[raw >= high]) >= 0.5
+    np.testing.assert_allclose(robust(3.0 * raw + 7.0), scores, atol=1e-6)
+    np.testing.assert_allclose(robust(minmax(raw)), scores, atol=1e-5)
+    assert not robust(np.full((4, 4), 2.0, np.float32)).any()
+    assert robust(np.zeros((0,), np.float32)).size == 0
+
+
 def test_calibration_fit_save_load(tmp_path):
     rng = np.random.default_rng(0)
     maps = [rng.random((8, 8), dtype=np.float32) for _ in range(5)]
@@ -307,7 +328,7 @@ def test_operator_outputs_normalised_map(metric, feature_file, tmp_path):
     fitter.fit().save(calibration)
     ctx = Context(base_dir=tmp_path)
     frame = frame_message(synthetic_frame())
-    for normalization in ("minmax", "calibrated"):
+    for normalization in ("minmax", "robust", "calibrated"):
         op = Difference(
             {
                 "metric": metric,
@@ -322,6 +343,8 @@ def test_operator_outputs_normalised_map(metric, feature_file, tmp_path):
         assert score.dtype == np.float32 and score.shape == (48, 64)
         assert 0.0 <= score.min() and score.max() <= 1.0
         assert out.meta["metric"] == metric and out.meta["normalization"] == normalization
+        if normalization == "robust":
+            np.testing.assert_array_equal(score, robust(op.metric(*synthetic_frame())))
         if normalization == "minmax":
             assert score.max() == pytest.approx(1.0)
 

@@ -17,6 +17,7 @@ from umad_common.cli import build_parser
 from umad_common.cli import main as umad_main
 from umad_common.commands.evaluate import every_and_layout
 from umad_common.dataflow.messages import Message, encode
+from umad_common.differences import robust
 from umad_common.metrics.components import component_metrics
 from umad_common.refine import refine
 from umad_common.viz.report import write_report
@@ -181,9 +182,9 @@ def direct(truths, fused_of):
     return sklearn_scores(scores, labels)
 
 
-def weighted(t, weights):
+def weighted(t, weights, normalise=lambda score_map: score_map):
     metric_to_op = {("temporal" if m == "td" else m): op for op, m in METRIC_OPS.items()}
-    return sum(float(wt) * t["maps"][metric_to_op[m]] for m, wt in weights.items()) / sum(
+    return sum(float(wt) * normalise(t["maps"][metric_to_op[m]]) for m, wt in weights.items()) / sum(
         float(v) for v in weights.values()
     )
 
@@ -220,10 +221,12 @@ def test_weight_rows_are_the_papers_in_its_order_then_ours():
     assert not any(row.extra for row in paper_weight_rows())
     rows = weight_rows()
     assert rows[:15] == paper_weight_rows() and all(row.extra for row in rows[15:])
-    assert {tuple(row.weights) for row in rows[15:]} == {
+    assert {tuple(row.weights) for row in rows[15:17]} == {
         ("ssim", "perceptual", "temporal"),
         ("abs", "ssim", "temporal"),
     }
+    assert all(row.normalization == "minmax" for row in rows[:17])
+    assert [(row.weights, row.normalization) for row in rows[17:]] == [(row.weights, "robust") for row in rows[:17]]
 
 
 def single_mask(fused, mask):
@@ -242,7 +245,7 @@ def test_rows_and_settings(result):
         "no mask",
         "felzenszwalb single",
     ]
-    assert len(result.metrics) == 17 * 9 and not result.skipped_rows
+    assert len(result.metrics) == 17 * 9 + 17 * 3 and not result.skipped_rows  # robust rows: no mask, mean
     assert result.stats.frames == 12 and result.stats.duplicates == 2 and result.stats.bad == 6
     assert result.stats.truncated is None
     assert set(result.frames.values()) == {12}
@@ -263,6 +266,25 @@ def test_numbers_equal_direct_computation(result, log_and_truth, row):
     assert got["AP"] == pytest.approx(ap, abs=1e-12)
     got = result.metrics[Config(row, "seg_gt", "single")].compute()
     ap, _ = direct(truths, lambda t: single_mask(weighted(t, weights), t["gt"][0]))
+    assert got["AP"] == pytest.approx(ap, abs=1e-12)
+
+
+@pytest.mark.parametrize("row", [0, 14, 16])
+def test_robust_rows_fuse_robust_normalised_maps(result, log_and_truth, row):
+    """Row 17 + i is row i on robust-normalised maps (docs/design.md), scored without masks and with
+    `mean` refinement only, labelled as ours."""
+    truths = log_and_truth[1]
+    robust_row = 17 + row
+    rows = weight_rows()
+    assert rows[robust_row].weights == rows[row].weights and rows[robust_row].extra
+    assert result.row_label(robust_row) == f"{result.row_label(row)}, robust"
+    assert Config(robust_row, "seg_felz", "max") not in result.metrics
+    weights = rows[row].weights
+    got = result.metrics[Config(robust_row, None, "none")].compute()
+    ap, auroc = direct(truths, lambda t: weighted(t, weights, robust))
+    assert got["AP"] == pytest.approx(ap, abs=1e-12) and got["AUROC"] == pytest.approx(auroc, abs=1e-12)
+    got = result.metrics[Config(robust_row, "seg_felz", "mean")].compute()
+    ap, _ = direct(truths, lambda t: refined_mean(weighted(t, weights, robust), t["tiles"]))
     assert got["AP"] == pytest.approx(ap, abs=1e-12)
 
 
@@ -357,14 +379,15 @@ def test_report_files(result, log_and_truth, tmp_path):
         "anomaly",
     }
     assert diagnosis["since_visible"]["fused"]["all"][0]["frames"] == 12
-    assert len(summary["rows"]) == 17 * 9 and summary["baseline"]["name"] == "MNAD"
+    assert len(summary["rows"]) == 17 * 9 + 17 * 3 and summary["baseline"]["name"] == "MNAD"
     assert "MNAD" in summary["components"] and (out / "components.md").is_file()
     assert {"weights", "masks", "AP", "FPR95", "AUROC", "extra"} <= set(summary["rows"][0])
     extra = {(r["weights_label"], r["masks"]) for r in summary["rows"] if r["extra"]}
     assert ("ssim+perceptual+temporal (1/3)", "gt mean") in extra and ("abs", "gt single_keep_raw") in extra
     assert ("abs", "gt max") in extra and ("abs", "felzenszwalb max") not in extra
+    assert ("all (1/5), robust", "felzenszwalb mean") in extra and ("all (1/5), robust", "no mask") in extra
     table = (out / "table.md").read_text()
-    assert table.count("\n| ") == 17 * 9 + 1 and "**" in table
+    assert table.count("\n| ") == 17 * 9 + 17 * 3 + 1 and "**" in table
     best_ap = max(r["AP"] for r in summary["rows"] + [summary["baseline"]])
     assert f"**{100 * best_ap:.2f}**" in table
     scenarios = (out / "per_scenario.md").read_text()
@@ -436,8 +459,11 @@ def test_paper_layout_table(result, tmp_path):
     assert header.index("gt mean AP") < header.index("felzenszwalb mean AP") < header.index("felzenszwalb max AP")
     assert header.index("felzenszwalb max AP") < header.index("no mask AP") < header.index("felzenszwalb single AP")
     rows = [line for line in lines[2:] if line.startswith("| ")]
-    assert len(rows) == 17 and rows[0].startswith("| 1 |  |  |  |  | paper |")
-    assert all("| extra |" in row for row in rows[15:])
+    assert len(rows) == 34 and rows[0].startswith("| 1 |  |  |  |  | paper |")
+    assert all("| extra |" in row for row in rows[15:17])
+    assert all("| extra, robust |" in row for row in rows[17:]) and rows[17].startswith(
+        "| 1 |  |  |  |  | extra, robust |"
+    )
 
 
 def test_cli(log_and_truth, tmp_path, capsys):

@@ -29,6 +29,7 @@ from umad_common.differences.normalization import (
     calibrated,
     load_calibration,
     minmax,
+    robust,
 )
 
 METRICS: dict[str, type[DifferenceMetric] | str] = {
@@ -72,5 +73,6 @@ __all__ = [
     "load_calibration",
     "metric_class",
     "minmax",
+    "robust",
     "validate_frame",
 ]

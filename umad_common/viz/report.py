@@ -58,6 +58,7 @@ def table_rows(result: SweepResult) -> list[dict[str, Any]]:
                 "masks": label,
                 "extra": result.rows[config.row].extra or label not in paper,
                 "extra_weights": result.rows[config.row].extra,
+                "normalization": result.rows[config.row].normalization,
                 "segmenter": config.segmenter,
                 "mode": config.mode,
                 "AP": _number(scores["AP"]),
@@ -104,6 +105,12 @@ def _fractions(weights: dict[str, float]) -> list[str]:
     return [str(Fraction(weights[m]).limit_denominator(10)) if m in weights else "" for m in PAPER_METRICS]
 
 
+def _normalization_note(row: dict[str, Any]) -> str:
+    """`, robust` for a row fused from robust-normalised maps; nothing for the paper's min-max."""
+    normalization = row.get("normalization", "minmax")
+    return "" if normalization == "minmax" else f", {normalization}"
+
+
 def _row_name(row: dict[str, Any]) -> str:
     return row["weights_label"] + (" (extra)" if row["extra_weights"] else "")
 
@@ -116,7 +123,7 @@ def ablation_table(rows: list[dict[str, Any]], baseline: dict[str, Any] | None) 
     lines = []
     for row, mark in zip(everything, marks, strict=True):
         weights = _fractions(row["weights"]) if "weights" in row else ["MNAD baseline", "", "", "", ""]
-        in_paper = "extra" if row.get("extra") else "yes"
+        in_paper = ("extra" if row.get("extra") else "yes") + _normalization_note(row)
         lines.append(
             [
                 *text_cells(*weights, row["masks"]),
@@ -141,7 +148,9 @@ def paper_layout_table(rows: list[dict[str, Any]], baseline: dict[str, Any] | No
     header = [*METRIC_COLUMNS.values(), "row", *(f"{name} {'↑' if higher else '↓'}" for name, higher in keys)]
     lines = [
         [
-            *text_cells(*_fractions(row["weights"]), "extra" if row["extra_weights"] else "paper"),
+            *text_cells(
+                *_fractions(row["weights"]), ("extra" if row["extra_weights"] else "paper") + _normalization_note(row)
+            ),
             *(Cell(percent(values[k]), mark[k]) for k, _ in keys),
         ]
         for row, values, mark in zip(weight_rows.values(), grid, marks, strict=True)
