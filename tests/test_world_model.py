@@ -332,6 +332,23 @@ def test_predictor_bridges_a_gap_with_the_prior_and_restarts_after_a_longer_one(
     assert np.array_equal(out.arrays["recon"], fresh.arrays["recon"])
 
 
+def test_predictor_in_bfloat16_publishes_float32_images_close_to_float32(weights):
+    """`precision: bfloat16` runs the model under bfloat16 autocast along a run (its state included)
+    and still publishes float32 images, a few hundredths from the float32 operator's at most; the
+    precision cannot change while the state exists."""
+    frames = [sensor_frame("run_a", seq, np.random.default_rng(seq)) for seq in range(5)]
+    full = WorldModelPredictor({"model": str(weights), "horizon": 2})
+    half = WorldModelPredictor({"model": str(weights), "horizon": 2, "precision": "bfloat16"})
+    for frame in frames:
+        a, b = full.process(frame)["frame"].arrays, half.process(frame)["frame"].arrays
+        assert b["recon"].dtype == np.float32 and b["preds"].dtype == np.float32
+        assert np.abs(a["recon"] - b["recon"]).max() < 0.05 and np.abs(a["preds"] - b["preds"]).max() < 0.05
+        assert list(a["pred_valid"]) == list(b["pred_valid"])
+    assert np.abs(a["recon"] - b["recon"]).max() > 0  # bfloat16 did run
+    with pytest.raises(ValueError, match="precision"):
+        half.update_params(half.Params(model=str(weights), horizon=2, precision="float32"))
+
+
 def test_predictor_fails_early_on_missing_or_mismatched_weights(tmp_path, weights):
     with pytest.raises(WeightsError, match="not found"):
         WorldModelPredictor({"model": str(tmp_path / "nothing.safetensors")})
