@@ -34,8 +34,8 @@ from umad_common.dataflow.mcap_log import LogError, describe_loss, read_metadata
 from umad_common.differences.normalization import robust
 from umad_common.metrics.components import ComponentMetrics
 from umad_common.metrics.diagnosis import Diagnosis
-from umad_common.metrics.pixel import PixelMetrics
-from umad_common.refine import MAX_CHUNK_ELEMENTS, fuse, only_the_best, paint_masks, refine, resize_nearest
+from umad_common.metrics.pixel import LabelledPixels, PixelMetrics
+from umad_common.refine import MAX_CHUNK_ELEMENTS, fuse, only_the_best, refine, resize_nearest
 
 PAPER_METRICS = ("abs", "mse", "ssim", "perceptual", "temporal")
 REFINE_MODES = ("mean", "max", "single", "single_keep_raw")  # single_keep_raw is ours, not the paper's
@@ -90,11 +90,12 @@ def normalised_maps(diffs: dict[str, np.ndarray], normalization: str) -> dict[st
 class MaskSet:
     """`refine(fused, masks, mode, uncovered="keep")` for many fused maps over the same masks.
 
-    The sweep refines 15 fused maps per frame with the same masks; converting the masks once per
+    The sweep refines 34 fused maps per frame with the same masks; converting the masks once per
     frame instead of once per call makes it several times faster. The results are bit-identical to
     `umad_common.refine.refine` (tests/test_sweep.py checks it): `mean` scores use the same float64
-    product in the same chunks, `max` is exact whatever the order, painting is refine's own
-    `paint_masks`.
+    product in the same chunks unless every mask's sum is exact in float64 (then any order gives
+    refine's sums); `max` is exact whatever the order; painting gives each pixel the score that
+    refine's `paint_masks` paints last.
     """
 
     def __init__(self, masks: np.ndarray):
@@ -103,13 +104,31 @@ class MaskSet:
         self.areas = flat.sum(axis=1)
         self.dense = flat.astype(np.float64)  # (K, N), the operand refine's `mean` builds on every call
         self.chunk = max(1, MAX_CHUNK_ELEMENTS // max(1, flat.shape[1]))
-        owner, self.pixels = np.nonzero(flat)  # pixels of mask 0, then mask 1, ...
+        self.owners, self.pixels = np.nonzero(flat)  # (mask, pixel) pairs: pixels of mask 0, then mask 1, ...
         self.nonempty = np.flatnonzero(self.areas > 0)
-        self.starts = np.searchsorted(owner, self.nonempty)
+        self.starts = np.searchsorted(self.owners, self.nonempty)
+
+    def exact_sums(self, values: np.ndarray) -> np.ndarray | None:
+        """Each nonempty mask's sum of `values` (float64 copies of float32 scores, mask by mask as in
+        `pixels`), or None unless every sum is exact in any order: a mask's values are all multiples of
+        its smallest nonzero magnitude's float32 spacing q, so every partial sum is one below
+        area x largest magnitude, exact while that stays under 2**53 q (checked with a factor 2 to spare for the rounded bound)."""
+        magnitudes = np.abs(values)
+        largest = np.maximum.reduceat(magnitudes, self.starts)
+        smallest = np.minimum.reduceat(np.where(magnitudes > 0, magnitudes, np.inf), self.starts)
+        all_zero = np.isinf(smallest)
+        spacing = np.spacing(np.where(all_zero, 1.0, smallest).astype(np.float32)).astype(np.float64)
+        if not np.all(all_zero | (largest * self.areas[self.nonempty] < 2.0**52 * spacing)):
+            return None
+        return np.add.reduceat(values, self.starts)
 
     def mean_scores(self, fused: np.ndarray) -> np.ndarray:
         flat_scores = np.asarray(fused, dtype=np.float64).reshape(-1)
         scores = np.full(self.masks.shape[0], -np.inf)
+        sums = self.exact_sums(flat_scores[self.pixels]) if self.nonempty.size else None
+        if sums is not None:
+            scores[self.nonempty] = sums / self.areas[self.nonempty]
+            return scores
         for start in range(0, self.masks.shape[0], self.chunk):
             areas = self.areas[start : start + self.chunk]
             sums = self.dense[start : start + self.chunk] @ flat_scores
@@ -123,6 +142,21 @@ class MaskSet:
             scores[self.nonempty] = np.maximum.reduceat(values, self.starts)
         return scores
 
+    def paint(self, scores: np.ndarray, background: np.ndarray) -> np.ndarray:
+        """`paint_masks(scores, self.masks, background)` in one pass over the mask pixels: paint_masks
+        paints the finite-scored masks in stable ascending score order, so each covered pixel ends
+        with the score of its mask latest in that order."""
+        paint_order = np.argsort(scores, kind="stable")
+        position = np.empty(scores.size, dtype=np.int64)
+        position[paint_order] = np.arange(scores.size)
+        position[~np.isfinite(scores)] = -1  # never painted
+        last = np.full(background.size, -1, dtype=np.int64)  # per pixel: the latest painted mask's position
+        np.maximum.at(last, self.pixels, position[self.owners])
+        out = np.array(background, dtype=np.float32, copy=True).reshape(-1)
+        covered = last >= 0
+        out[covered] = scores[paint_order][last[covered]]
+        return out.reshape(background.shape)
+
     def refine_all(self, fused: np.ndarray, modes: tuple[str, ...] = REFINE_MODES) -> dict[str, np.ndarray]:
         """The `modes` (of REFINE_MODES) maps of one fused map (uncovered pixels keep their score;
         `single` gives every pixel outside the winning mask the frame's lowest score)."""
@@ -134,10 +168,10 @@ class MaskSet:
         mean = self.mean_scores(fused)
         single = only_the_best(mean) if {"single", "single_keep_raw"} & set(modes) else mean
         paint = {
-            "mean": lambda: paint_masks(mean, self.masks, fused),
-            "max": lambda: paint_masks(self.max_scores(fused), self.masks, fused),
-            "single": lambda: paint_masks(single, self.masks, lowest),
-            "single_keep_raw": lambda: paint_masks(single, self.masks, fused),
+            "mean": lambda: self.paint(mean, fused),
+            "max": lambda: self.paint(self.max_scores(fused), fused),
+            "single": lambda: self.paint(single, lowest),
+            "single_keep_raw": lambda: self.paint(single, fused),
         }
         return {mode: paint[mode]() for mode in modes}
 
@@ -255,11 +289,11 @@ class Sweep:
         self.truth_shapes: set[tuple[int, int]] = set()
         self.diagnosis = Diagnosis()
 
-    def _count(self, config: Config, scores: np.ndarray, labels: np.ndarray) -> None:
+    def _count(self, config: Config, scores: np.ndarray, pixels: LabelledPixels) -> None:
         metrics = self.metrics.get(config)
         if metrics is None:
             metrics = self.metrics[config] = PixelMetrics()
-        metrics.update(scores, labels)
+        metrics.update_labelled(scores, pixels)
         self.frames[config] = self.frames.get(config, 0) + 1
 
     def add(self, frame: FrameRecord, segmenters: dict[str, str]) -> None:
@@ -277,6 +311,7 @@ class Sweep:
         if not frame.diffs:
             return
         shape, labels, masks = model_size_inputs(frame)
+        pixels = LabelledPixels(labels)  # split once, read by every configuration's metrics
         self.score_shapes.add(shape)
         mask_sets = {op: MaskSet(op_masks) for op, op_masks in masks.items()}
         usable = [i for i, row in enumerate(self.rows) if set(row.weights) <= set(frame.diffs)]
@@ -289,15 +324,16 @@ class Sweep:
             self.rows_seen.add(i)
             weights = {m: float(w) for m, w in self.rows[i].weights.items()}
             fused = fuse({m: maps[self.rows[i].normalization][m] for m in weights}, weights, shape)
-            self._count(Config(i, None, "none"), fused, labels)
+            self._count(Config(i, None, "none"), fused, pixels)
             if i == self.default_row:
-                self._scenario(frame.run, "no mask").update(fused, labels)
+                self._scenario(frame.run, "no mask").update_labelled(fused, pixels)
                 pictures["fused"] = followed["fused"] = fused
             for op, mask_set in mask_sets.items():
                 for mode, refined in mask_set.refine_all(fused, self.rows[i].modes).items():
-                    self._count(Config(i, op, mode), refined, labels)
+                    self._count(Config(i, op, mode), refined, pixels)
                     if i == self.default_row:
-                        self._scenario(frame.run, f"{segmenters.get(op, op)} {mode}").update(refined, labels)
+                        label = f"{segmenters.get(op, op)} {mode}"
+                        self._scenario(frame.run, label).update_labelled(refined, pixels)
                         if mode == "mean":
                             pictures[f"refined ({segmenters.get(op, op)} mean)"] = refined
                             followed[f"{segmenters.get(op, op)} mean"] = refined

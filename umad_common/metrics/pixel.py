@@ -29,20 +29,48 @@ N_PATTERNS = 1 << 16
 _UPDATE_CHUNK = 1 << 22  # pixels per internal step: bounds the temporaries of one update()
 
 
-def _value_order() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _value_order() -> tuple[np.ndarray, np.ndarray]:
     """For every float16 bit pattern: its rank among the distinct non-NaN values (ascending).
 
-    Returns (rank_of_pattern, distinct_values, is_nan_pattern); -0 and +0 share a rank.
+    Returns (rank_of_pattern, distinct_values); -0 and +0 share a rank, NaN patterns have rank 0
+    (they are never counted).
     """
     values = np.arange(N_PATTERNS, dtype=np.uint32).astype(np.uint16).view(np.float16).astype(np.float64)
     is_nan = np.isnan(values)
     distinct, rank = np.unique(values[~is_nan], return_inverse=True)
     rank_of_pattern = np.zeros(N_PATTERNS, dtype=np.int64)
     rank_of_pattern[~is_nan] = rank
-    return rank_of_pattern, distinct, is_nan
+    return rank_of_pattern, distinct
 
 
-_RANK_OF_PATTERN, _DISTINCT_VALUES, _NAN_PATTERN = _value_order()
+_RANK_OF_PATTERN, _DISTINCT_VALUES = _value_order()
+
+
+class LabelledPixels:
+    """One frame's labels checked and split by class once: the flat indices of its normal and its
+    anomaly pixels and the count of ignored ones. The sweep scores ~200 maps per frame over the same
+    labels; `PixelMetrics.update_labelled` then only reads the scores.
+
+    Raises:
+        ValueError: a label is not 0/1/255, or the labels are not integers.
+    """
+
+    def __init__(self, labels: np.ndarray):
+        labels = np.asarray(labels)
+        if labels.dtype.kind not in "biu":
+            raise ValueError(f"labels must be integers 0/1/255, got dtype {labels.dtype}")
+        if labels.dtype not in (np.uint8, np.bool_) and labels.size and (labels.min() < 0 or labels.max() > 255):
+            raise ValueError(f"labels must be 0, 1 or 255, got values in [{labels.min()}, {labels.max()}]")
+        flat = labels.reshape(-1).astype(np.uint8, copy=False)
+        label_counts = np.bincount(flat, minlength=256)
+        bad = np.flatnonzero(label_counts)
+        bad = bad[(bad != NORMAL) & (bad != ANOMALY) & (bad != IGNORE)]
+        if bad.size:
+            raise ValueError(f"labels must be 0 (normal), 1 (anomaly) or 255 (ignore), got {bad[:5].tolist()}")
+        self.size = flat.size
+        self.normal = np.flatnonzero(flat == NORMAL)
+        self.anomaly = np.flatnonzero(flat == ANOMALY)
+        self.n_ignored = int(label_counts[IGNORE])
 
 
 class PixelMetrics:
@@ -74,30 +102,32 @@ class PixelMetrics:
             raise ValueError(
                 f"scores of shape {scores.shape} and labels of shape {labels.shape} must have the same shape"
             )
-        if labels.dtype.kind not in "biu":
-            raise ValueError(f"labels must be integers 0/1/255, got dtype {labels.dtype}")
         flat_scores, flat_labels = scores.reshape(-1), labels.reshape(-1)
         for start in range(0, flat_scores.size, _UPDATE_CHUNK):
-            self._update_chunk(flat_scores[start : start + _UPDATE_CHUNK], flat_labels[start : start + _UPDATE_CHUNK])
+            chunk = slice(start, start + _UPDATE_CHUNK)
+            self.update_labelled(flat_scores[chunk], LabelledPixels(flat_labels[chunk]))
 
-    def _update_chunk(self, scores: np.ndarray, labels: np.ndarray) -> None:
-        patterns = scores.astype(np.float16, copy=False).view(np.uint16)
-        if _NAN_PATTERN[patterns].any():
+    def update_labelled(self, scores: np.ndarray, pixels: LabelledPixels) -> None:
+        """Add one frame whose labels were split by class once (`LabelledPixels`), for many score maps
+        over the same labels: only the scores are read here.
+
+        Args:
+            scores: anomaly scores of `pixels.size` pixels (any shape, read in C order).
+            pixels: the frame's labels, as `LabelledPixels`.
+
+        Raises:
+            ValueError: a score is NaN, or the scores are not `pixels.size` many.
+        """
+        scores = np.asarray(scores)
+        if scores.size != pixels.size:
+            raise ValueError(f"{scores.size} scores for {pixels.size} labelled pixels; expected one score per pixel")
+        if scores.dtype.kind in "fc" and np.isnan(scores).any():
             raise ValueError("scores contain NaN; expected finite or infinite numbers (NaN has no rank)")
-        if labels.dtype not in (np.uint8, np.bool_) and labels.size and (labels.min() < 0 or labels.max() > 255):
-            raise ValueError(f"labels must be 0, 1 or 255, got values in [{labels.min()}, {labels.max()}]")
-        label_counts = np.bincount(labels.astype(np.uint8, copy=False), minlength=256)
-        bad = np.flatnonzero(label_counts)
-        bad = bad[(bad != NORMAL) & (bad != ANOMALY) & (bad != IGNORE)]
-        if bad.size:
-            raise ValueError(f"labels must be 0 (normal), 1 (anomaly) or 255 (ignore), got {bad[:5].tolist()}")
-        keys = patterns.astype(np.int32)
-        if label_counts[ANOMALY]:
-            keys[labels == ANOMALY] += N_PATTERNS
-        if label_counts[IGNORE]:
-            keys = keys[labels != IGNORE]
-            self.n_ignored += int(label_counts[IGNORE])
-        self.hist += np.bincount(keys, minlength=2 * N_PATTERNS).reshape(2, N_PATTERNS)
+        patterns = scores.reshape(-1).astype(np.float16, copy=False).view(np.uint16)
+        for label, index in ((NORMAL, pixels.normal), (ANOMALY, pixels.anomaly)):
+            counts = np.bincount(patterns[index])  # as long as the highest pattern present, not 65,536
+            self.hist[label, : counts.size] += counts
+        self.n_ignored += pixels.n_ignored
 
     def merge(self, other: PixelMetrics) -> PixelMetrics:
         """Pool another accumulator's pixels into this one (e.g. per-run -> overall); returns self."""
