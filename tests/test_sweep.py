@@ -532,8 +532,20 @@ def test_mask_set_is_bit_identical_to_refine(seed):
     overlapping[3] = False  # an empty mask
     overlapping[5] = overlapping[6]  # two equal masks: equal scores
     tiling = np.stack([(np.arange(36)[None, :] // 6 == k).repeat(24, axis=0) for k in range(6)])
+    coarse = np.round(fused * 1024) / 1024  # multiples of 2**-10: every mask's sum is exact
+    tiny = fused.copy()
+    tiny[:, ::5] = 1e-30  # in every mask: no exact sums, refine's product
     for masks in (overlapping, tiling, np.zeros((0, 24, 36), bool)):
-        refined = MaskSet(masks).refine_all(fused)
-        for mode in ("mean", "max", "single", "single_keep_raw"):
-            expected = refine(fused, masks, mode=mode, uncovered="keep")
-            assert refined[mode].dtype == expected.dtype and np.array_equal(refined[mode], expected), mode
+        mask_set = MaskSet(masks)
+        for score_map in (fused, coarse, tiny):
+            refined = mask_set.refine_all(score_map)
+            for mode in ("mean", "max", "single", "single_keep_raw"):
+                expected = refine(score_map, masks, mode=mode, uncovered="keep")
+                assert refined[mode].dtype == expected.dtype and np.array_equal(refined[mode], expected), mode
+        if mask_set.nonempty.size:
+            pixel_values = {
+                name: m.astype(np.float64).reshape(-1)[mask_set.pixels]
+                for name, m in (("coarse", coarse), ("tiny", tiny))
+            }
+            assert mask_set.exact_sums(pixel_values["coarse"]) is not None
+            assert mask_set.exact_sums(pixel_values["tiny"]) is None
