@@ -8,6 +8,13 @@ operator runs one per frame on the world model's target image:
       inputs: {frame: world_model/frame, lidar: replayer/lidar}   # truth: replayer/truth for gt
       params: {method: geometry, options: {rest: slic}}
 
+or on the camera image itself, resized to `image_size` as the world model resizes it (the same
+pixels, so the same masks), without waiting for the world model: the live graph does, so the
+segmenter works while the world model does and the refined map comes one stage sooner:
+
+      inputs: {camera: replayer/camera, lidar: replayer/lidar}
+      params: {method: geometry, image_size: [192, 128]}
+
 `truth` and `lidar` are wired only where the method reads them; `umad graph check` names a method
 whose input is missing. Masks travel as one (K, h, w) bool array, so SAM's overlaps survive.
 """
@@ -16,6 +23,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -35,6 +43,11 @@ class SegmenterParams(BaseModel):
     options: dict[str, Any] = Field(
         default_factory=dict, description="the method's own parameters (its `Params`; unset ones take its defaults)"
     )
+    image_size: tuple[int, int] = Field(
+        (192, 128),
+        description="width, height the `camera` input is resized to (area averaging, as the world model resizes "
+        "its input): the world model's image size, so masks match its maps; unused with the `frame` input",
+    )
 
     @model_validator(mode="after")
     def _options_fit_the_method(self) -> SegmenterParams:
@@ -49,10 +62,15 @@ class SegmenterParams(BaseModel):
 
 
 class Segmenter(Operator):
-    """Per-frame segment masks of the world model's target image."""
+    """Per-frame segment masks of the world model's target image (or of the camera image, resized)."""
 
     kind = "segmenter"
-    inputs = (Input("frame"), Input("truth", optional=True), Input("lidar", optional=True))
+    inputs = (
+        Input("frame", optional=True),
+        Input("camera", optional=True),
+        Input("truth", optional=True),
+        Input("lidar", optional=True),
+    )
     outputs = ("masks",)
     Params = SegmenterParams
 
@@ -64,10 +82,16 @@ class Segmenter(Operator):
     def wiring_problems(cls, params: BaseModel, wired: set[str]) -> list[str]:
         method = segmenter_class(params.method)
         needed = method.required_inputs(method.Params.model_validate(params.options))
-        return [
+        problems = [
             f"method {params.method!r} needs input {port!r} (e.g. replayer/{port}), which is not wired"
             for port in sorted(needed - wired)
         ]
+        images = sorted({"frame", "camera"} & wired)
+        if len(images) != 1:
+            problems.append(
+                f"wire exactly one image input, frame (world_model/frame) or camera (replayer/camera); got {images}"
+            )
+        return problems
 
     def update_params(self, params: BaseModel) -> None:
         """Build the new method first, so a bad new setting (e.g. a missing checkpoint) keeps the old one."""
@@ -79,11 +103,17 @@ class Segmenter(Operator):
         return segmenter_class(params.method).from_options(params.options, self.context)
 
     def process(self, frame: Frame) -> dict[str, Output]:
-        target = frame.inputs["frame"].arrays.get("target")
-        if target is None or target.ndim != 3 or target.shape[2] != 3:
-            shape = None if target is None else target.shape
-            raise ValueError(f"segmenter {frame.frame_id}: input 'frame' array 'target' is {shape}; expected (h, w, 3)")
-        image = np.clip(np.asarray(target, dtype=np.float32), 0.0, 1.0)
+        port, name = ("frame", "target") if "frame" in frame.inputs else ("camera", "rgb")
+        image = frame.inputs[port].arrays.get(name) if port in frame.inputs else None
+        if image is None or image.ndim != 3 or image.shape[2] != 3:
+            shape = None if image is None else image.shape
+            raise ValueError(
+                f"segmenter {frame.frame_id}: input {port!r} array {name!r} is {shape}; expected (h, w, 3)"
+            )
+        if port == "camera":
+            image = cv2.resize(np.asarray(image, np.uint8), self.params.image_size, interpolation=cv2.INTER_AREA)
+            image = image.astype(np.float32) / 255.0
+        image = np.clip(np.asarray(image, dtype=np.float32), 0.0, 1.0)
         masks = self.method(image, frame).astype(bool, copy=False)
         meta = {"method": self.params.method, "count": int(masks.shape[0])}
         return {"masks": Output({"masks": masks}, meta)}

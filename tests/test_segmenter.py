@@ -441,3 +441,27 @@ def test_bench_takes_methods_and_grids_from_the_registry():
     assert len(tuned) == len(grid["scale"]) * len(grid["sigma"])
     defaults = SEGMENTERS["felzenszwalb"].Params()
     assert {"scale": defaults.scale, "sigma": defaults.sigma} in [c["options"] for c in tuned], "default in its grid"
+
+
+def test_segmenter_on_the_camera_gives_the_masks_it_gives_on_the_world_models_target():
+    """Wired to the camera, the segmenter resizes the image as the world model does (area averaging to
+    `image_size`), so its masks are those of the target the world model would publish; exactly one
+    image input must be wired."""
+    from umad_common.models.world_model import WorldModelConfig, resize_rgb
+
+    rgb = np.random.default_rng(5).integers(0, 256, (256, 384, 3), dtype=np.uint8)
+    rgb[60:140, 100:220] = (250, 20, 20)
+    target = resize_rgb(rgb, WorldModelConfig()).astype(np.float32) / 255.0
+    on_target = Segmenter({"method": "slic"}).process(
+        Frame("run", 0, 0, inputs={"frame": Message("run", 0, arrays={"target": target})})
+    )["masks"]
+    on_camera = Segmenter({"method": "slic", "image_size": (192, 128)}).process(
+        Frame("run", 0, 0, inputs={"camera": Message("run", 0, arrays={"rgb": rgb})})
+    )["masks"]
+    assert on_camera.arrays["masks"].shape[1:] == (128, 192)
+    np.testing.assert_array_equal(on_camera.arrays["masks"], on_target.arrays["masks"])
+    params = Segmenter.Params(method="slic")
+    assert Segmenter.wiring_problems(params, {"camera"}) == []
+    for wired in (set(), {"frame", "camera"}):
+        (problem,) = Segmenter.wiring_problems(params, wired)
+        assert "exactly one image input" in problem
