@@ -57,6 +57,21 @@ def test_same_seed_gives_identical_bytes(tmp_path, generated):
     assert len(first) > 5 * 2 * 7 and first == second
 
 
+def test_scenarios_rendered_in_two_processes_give_the_same_bytes(tmp_path, generated):
+    frames_seen = []
+    generate_benchmark(
+        tmp_path,
+        normal=1,
+        anomalous=1,
+        frames=5,
+        seed=7,
+        size=(96, 64),
+        on_frame=lambda: frames_seen.append(1),
+        workers=2,
+    )
+    assert tree_digest(tmp_path) == tree_digest(generated) and len(frames_seen) == 10
+
+
 def test_layout_has_generator_folders_and_nonzero_frame_ids(generated):
     folders = find_scenarios(generated)
     assert [p.parent.name for p in folders] == ["anomalous", "normal"]

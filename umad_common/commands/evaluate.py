@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -170,7 +171,9 @@ def _builtin_benchmark(folder: Path, scenarios: int, frames: int) -> Path:
 
         shutil.rmtree(folder)
     with tqdm(total=scenarios * frames, desc="generating benchmark", unit="frame") as bar:
-        generate_benchmark(folder, 0, scenarios, frames, BENCHMARK_SEED, (384, 256), on_frame=lambda: bar.update())
+        generate_benchmark(
+            folder, 0, scenarios, frames, BENCHMARK_SEED, (384, 256), on_frame=bar.update, workers=os.cpu_count() or 1
+        )
     marker.touch()
     return folder
 

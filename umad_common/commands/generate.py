@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import re
 import time
 from pathlib import Path
@@ -54,6 +55,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=parse_size, default=(384, 256), help="camera image size WxH (default 384x256)")
     parser.add_argument("--stress", action="store_true", help=STRESS_HELP)
     parser.add_argument("--preview", action="store_true", help="also write OUT/preview.png, a contact sheet")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="processes rendering scenarios at once (default: the machine's cores); the bytes do not depend on it",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -69,6 +76,9 @@ def run(args: argparse.Namespace) -> int:
         if getattr(args, name) < (1 if name == "frames" else 0):
             log.error("--%s must be %s, got %d", name, ">= 1" if name == "frames" else ">= 0", getattr(args, name))
             return 2
+    if args.workers < 1:
+        log.error("--workers must be >= 1, got %d", args.workers)
+        return 2
     out: Path = args.out
     for split in ("normal", "anomalous"):
         if (out / split).is_dir() and any((out / split).iterdir()):
@@ -78,7 +88,15 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     with tqdm(total=total, unit="frame", desc="generate stress set" if args.stress else "generate synthetic") as bar:
         roots = generate_benchmark(
-            out, args.normal, args.anomalous, args.frames, args.seed, args.size, on_frame=bar.update, stress=args.stress
+            out,
+            args.normal,
+            args.anomalous,
+            args.frames,
+            args.seed,
+            args.size,
+            on_frame=bar.update,
+            stress=args.stress,
+            workers=args.workers,
         )
     seconds = time.perf_counter() - started
     log.info(

@@ -201,17 +201,28 @@ def generate_benchmark(
     size: tuple[int, int],
     on_frame: Callable[[], None] | None = None,
     stress: bool = False,
+    workers: int = 1,
 ) -> list[Path]:
     """Write OUT/normal/Scenario_*, OUT/anomalous/Scenario_* and the scenario config file; with
-    `stress`, the stress set (see the module docstring) for the same arguments."""
+    `stress`, the stress set (see the module docstring) for the same arguments. Each scenario is
+    rendered from its own seed, so `workers` > 1 renders scenarios in that many processes and writes
+    the same bytes (`on_frame` is then called for a scenario's frames when it is done)."""
     camera = CameraSpec(width=size[0], height=size[1])
     wait_at = STRESS_WAIT_M if stress else None
-    records, roots = [], []
-    for plan in plan_benchmark(normal, anomalous, seed, stress):
-        scenario = SyntheticScenario(plan.seed, frames, plan.anomaly, plan.weather, camera=camera, wait_at=wait_at)
-        (out / plan.split).mkdir(parents=True, exist_ok=True)
-        roots.append(write_scenario(scenario, plan, out / plan.split, on_frame))
-        records.append(scenario_record(plan, scenario))
+    jobs = [(plan, frames, camera, wait_at, out) for plan in plan_benchmark(normal, anomalous, seed, stress)]
+    if workers > 1 and len(jobs) > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn")) as pool:
+            done = []
+            for result in pool.map(_render_scenario, jobs):
+                done.append(result)
+                for _ in range(frames if on_frame is not None else 0):
+                    on_frame()
+    else:
+        done = [_render_scenario(job, on_frame) for job in jobs]
+    roots, records = [root for root, _ in done], [record for _, record in done]
     config_dir = out / "Scenario_Configuration_Files"
     config_dir.mkdir(parents=True, exist_ok=True)
     (config_dir / "scenario_config_map_Synthetic.json").write_text(
@@ -221,6 +232,14 @@ def generate_benchmark(
         + "\n"
     )
     return roots
+
+
+def _render_scenario(job: tuple, on_frame: Callable[[], None] | None = None) -> tuple[Path, dict]:
+    """Render and write one planned scenario; (its folder, its config record)."""
+    plan, frames, camera, wait_at, out = job
+    scenario = SyntheticScenario(plan.seed, frames, plan.anomaly, plan.weather, camera=camera, wait_at=wait_at)
+    (out / plan.split).mkdir(parents=True, exist_ok=True)
+    return write_scenario(scenario, plan, out / plan.split, on_frame), scenario_record(plan, scenario)
 
 
 def _stress_note(stress: bool, normal: int, anomalous: int) -> dict:
