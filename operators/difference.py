@@ -96,8 +96,10 @@ class Difference(Operator):
         raw = self.metric(target, recon, preds, pred_valid)
         if self.params.normalization == "calibrated":
             score = calibrated(raw, self.scale)
+        elif self.params.normalization == "robust":
+            score = robust(raw)
         else:
-            score = robust(raw) if self.params.normalization == "robust" else minmax(raw)
+            score = minmax(raw)
         meta = {"metric": self.params.metric, "normalization": self.params.normalization}
         if self.scale is not None:
             meta["calibration_scale"] = self.scale

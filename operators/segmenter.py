@@ -110,10 +110,11 @@ class Segmenter(Operator):
             raise ValueError(
                 f"segmenter {frame.frame_id}: input {port!r} array {name!r} is {shape}; expected (h, w, 3)"
             )
-        if port == "camera":
-            image = cv2.resize(np.asarray(image, np.uint8), self.params.image_size, interpolation=cv2.INTER_AREA)
-            image = image.astype(np.float32) / 255.0
-        image = np.clip(np.asarray(image, dtype=np.float32), 0.0, 1.0)
+        if port == "camera":  # as the world model makes its target (`resize_rgb`), so the same pixels
+            resized = cv2.resize(np.asarray(image, np.uint8), self.params.image_size, interpolation=cv2.INTER_AREA)
+            image = resized.astype(np.float32) / 255.0
+        else:
+            image = np.clip(np.asarray(image, dtype=np.float32), 0.0, 1.0)
         masks = self.method(image, frame).astype(bool, copy=False)
         meta = {"method": self.params.method, "count": int(masks.shape[0])}
         return {"masks": Output({"masks": masks}, meta)}

@@ -17,6 +17,7 @@ import json
 import uuid
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -209,19 +210,21 @@ def generate_benchmark(
     the same bytes (`on_frame` is then called for a scenario's frames when it is done)."""
     camera = CameraSpec(width=size[0], height=size[1])
     wait_at = STRESS_WAIT_M if stress else None
-    jobs = [(plan, frames, camera, wait_at, out) for plan in plan_benchmark(normal, anomalous, seed, stress)]
-    if workers > 1 and len(jobs) > 1:
+    render = partial(_render_scenario, frames=frames, camera=camera, out=out, wait_at=wait_at)
+    plans = plan_benchmark(normal, anomalous, seed, stress)
+    if workers > 1 and len(plans) > 1:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn")) as pool:
-            done = []
-            for result in pool.map(_render_scenario, jobs):
+        done = []
+        with ProcessPoolExecutor(min(workers, len(plans)), mp_context=multiprocessing.get_context("spawn")) as pool:
+            for result in pool.map(render, plans):
                 done.append(result)
-                for _ in range(frames if on_frame is not None else 0):
-                    on_frame()
+                if on_frame is not None:
+                    for _ in range(frames):
+                        on_frame()
     else:
-        done = [_render_scenario(job, on_frame) for job in jobs]
+        done = [render(plan, on_frame=on_frame) for plan in plans]
     roots, records = [root for root, _ in done], [record for _, record in done]
     config_dir = out / "Scenario_Configuration_Files"
     config_dir.mkdir(parents=True, exist_ok=True)
@@ -234,9 +237,15 @@ def generate_benchmark(
     return roots
 
 
-def _render_scenario(job: tuple, on_frame: Callable[[], None] | None = None) -> tuple[Path, dict]:
+def _render_scenario(
+    plan: ScenarioPlan,
+    frames: int,
+    camera: CameraSpec,
+    out: Path,
+    wait_at: tuple[float, float] | None,
+    on_frame: Callable[[], None] | None = None,
+) -> tuple[Path, dict]:
     """Render and write one planned scenario; (its folder, its config record)."""
-    plan, frames, camera, wait_at, out = job
     scenario = SyntheticScenario(plan.seed, frames, plan.anomaly, plan.weather, camera=camera, wait_at=wait_at)
     (out / plan.split).mkdir(parents=True, exist_ok=True)
     return write_scenario(scenario, plan, out / plan.split, on_frame), scenario_record(plan, scenario)
