@@ -15,7 +15,8 @@ clock, and matches them by (run, seq). Reported:
   a newer one, `frames_superseded`) and `frames_failed` (an error marker arrived instead);
   `frames_missed` is their sum;
 - `latency_ms`: from the camera message's arrival to the refined map's (`camera_to_refined`) and to
-  the frame result's (`camera_to_result`) at the same subscriber, p50 / p99 / max. It leaves out
+  the frame result's (`camera_to_result`) at the same subscriber, p50 / p99 / max, over the frames
+  where all three arrived. It leaves out
   the camera's own hop from the replayer to the subscriber (about 1 ms, `umad bench bus`). Beside
   it the replayer's own send-to-ack latency (`source_send_to_ack_*`, the result operator's ack);
 - `cpu_ms_per_frame`: per operator, its own work per frame it computed, and `runtime_cpu_ms` per
@@ -182,9 +183,15 @@ def frame_counts(arrivals: Arrivals, sent: int) -> dict:
 
 
 def latencies(arrivals: Arrivals, name: str) -> list[float]:
-    """ms from each frame's camera message to its `name` message, frames where both arrived."""
-    camera = arrivals.times["camera"]
-    return [1e3 * (t - camera[key]) for key, t in arrivals.times[name].items() if key in camera]
+    """ms from each frame's camera message to its `name` message, over the frames where the camera,
+    the refined map and the result all arrived: both figures describe the same frames, so the
+    result's percentiles are never below the refined map's."""
+    camera, refined, result = (arrivals.times[n] for n in ("camera", "refined", "result"))
+    return [
+        1e3 * (t - camera[key])
+        for key, t in arrivals.times[name].items()
+        if key in camera.keys() & refined.keys() & result.keys()
+    ]
 
 
 def percentiles(values_ms: list[float]) -> dict:

@@ -142,6 +142,15 @@ class FrameJoiner:
             del self.pending[(run, s)]
         return older
 
+    def pop_expired(self, deadline_s: float) -> dict[tuple[str, int], int]:
+        """Forget the frames that waited longer than `deadline_s` for an input and are still not
+        ready (live mode: the input was lost); returns their {(run, seq): stamp_ns}."""
+        now = time.monotonic()
+        expired = {key: entry.stamp_ns for key, entry in self.pending.items() if now - entry.first_seen > deadline_s}
+        for key in expired:
+            del self.pending[key]
+        return expired
+
     def pop_ready(self, expected: dict[str, set[str]], deadline_s: float = 0.0) -> list[Frame]:
         now = time.monotonic()
         ready = []

@@ -19,10 +19,11 @@ Delivery protocol (lossless by design):
   - after the last frame of a run is acked the source sends an end-of-run marker (meta `eos`),
     which each operator passes on after calling its `end_run`.
 
-Live mode (a source paces in real time and never re-sends) replaces waiting with taking the newest:
-an operator processes the newest frame it has ready and passes the older ones over (meta
-`superseded`, counted in `superseded`), so a lost payload never holds an ordered operator and a
-slow operator never works through a backlog (`_finish_newest`).
+Live mode (a source paces in real time and never re-sends) replaces waiting with keeping up: an
+operator computes the newest frames it has ready, as many as it can in one camera period, and
+passes the older ones over (meta `superseded`, counted in `superseded`); a frame still waiting for
+an input after its deadline is passed over too. So a lost payload never holds an operator, a slow
+operator never works through a backlog, and a cheap one catches up after a stall (`_finish_live`).
 
 Commands arrive as queries on the control key and are answered once applied or refused; what does
 not change while the graph runs (is this replica a sink, which producers feed a wildcard port) is
@@ -72,6 +73,7 @@ log = logging.getLogger("umad.runtime")
 
 STATS_INTERVAL_S = 1.0
 LIVE_JOIN_POLL_S = 0.05  # how often a live join with frames waiting checks their deadline
+COMPUTE_EMA = 0.2  # weight of the newest frame in the running mean of an operator's compute time
 IDLE_WAIT_S = 0.25  # an idle operator's sleep: the longest a stop signal waits to be seen
 BAD_MESSAGE_LOG_FIRST = 10  # malformed messages logged one by one; later ones are summarised
 BAD_MESSAGE_LOG_INTERVAL_S = 5.0
@@ -171,6 +173,8 @@ class OperatorRuntime:
         self._last_bad_log = 0.0
         self.is_sink = op_id in graph.sinks()  # sinks ack frames end to end
         self.live = self._live_mode()
+        self._frame_period_s = self._camera_period_s()
+        self._compute_s = 0.0  # running mean of the wall time `process` takes (live mode's catch-up)
         self._params_meta = self.operator.params.model_dump(mode="json")  # recorded in every output
         self._route_cache: tuple[dict[str, set[str]], list[str]] | None = None  # expected producers, replicas
         # the transform loop's state
@@ -330,20 +334,28 @@ class OperatorRuntime:
         self.log.info("parameters changed: %s", updates)
         return {"status": "applied"}
 
+    def _realtime_rates(self) -> list[float]:
+        """The `rate_hz` of every source that paces in real time (none: the graph is lossless)."""
+        sources = (self.graph.classes[s].validate_params(self.graph.op(s).params) for s in self.graph.sources())
+        return [params.rate_hz for params in sources if params.pacing == "realtime"]
+
     def _live_mode(self) -> bool:
         """Live (a source paces in real time): joins may give up at their deadline. Lossless (the
         default): every expected input is waited for."""
-        return any(
-            self.graph.classes[src].validate_params(self.graph.op(src).params).pacing == "realtime"
-            for src in self.graph.sources()
-        )
+        return bool(self._realtime_rates())
+
+    def _camera_period_s(self) -> float:
+        """Live mode: the time between two frames of the fastest realtime source (0 when lossless)."""
+        rates = self._realtime_rates()
+        return 1.0 / max(rates) if rates else 0.0
 
     def _deadline_s(self) -> float:
-        """How long a partly joined frame may wait in live mode; `umad set OP.deadline_ms=...`
-        applies from the next frame on."""
-        if not self.live or not isinstance(self.operator.params, JoinParams):
+        """How long a partly joined frame may wait in live mode: a joining operator's `deadline_ms`
+        (`umad set OP.deadline_ms=...` applies from the next frame on), else JoinParams' default."""
+        if not self.live:
             return 0.0
-        return self.operator.params.deadline_ms / 1e3
+        params = self.operator.params if isinstance(self.operator.params, JoinParams) else JoinParams()
+        return params.deadline_ms / 1e3
 
     def _request_rewind(self, run: str, seq: int) -> None:
         """An ordered operator that (re)started mid-run rebuilds its state by re-observing the run
@@ -376,7 +388,7 @@ class OperatorRuntime:
         """The message; a reference to a ring this host cannot map is fetched from its publisher. A
         payload nobody has any more is counted in `lost_payloads` and left to the source's
         retransmission, which brings the frame again; in live mode, where nothing is re-sent, its
-        frame is passed over once a newer one is processed (`_finish_newest`)."""
+        frame is passed over at its deadline (`_finish_live`)."""
         if not isinstance(received.message, bytes):
             return received.message
         payload = fetch(self.session, self.keys.root, received.message)
@@ -496,7 +508,9 @@ class OperatorRuntime:
                 continue
             ready = self.joiner.pop_ready(self._routes()[0], deadline_s)
             if self.live:
-                self._finish_newest(ready)
+                self._finish_live(ready)
+                for (run, seq), stamp_ns in self.joiner.pop_expired(deadline_s).items():
+                    self._pass_over(run, seq, stamp_ns)
                 continue
             for frame in ready:
                 if self.cls.ordered:
@@ -540,8 +554,8 @@ class OperatorRuntime:
             return False
         if not self._owns(msg.seq):
             return False
-        if self.live and msg.seq < self._next_seq[msg.run]:
-            return False  # an input of a frame this operator passed over (`_finish_newest`)
+        if self.live and msg.seq < self._next_seq[msg.run] and key not in self.joiner.pending:
+            return False  # a late input of a frame finished or passed over (`_finish_live`)
         self.joiner.add(received.port, producer, msg)
         return True
 
@@ -559,20 +573,24 @@ class OperatorRuntime:
             self._finish(waiting.pop(self._next_seq[run]))
             self._next_seq[run] += 1
 
-    def _finish_newest(self, ready: list[Frame]) -> None:
-        """Live mode: a camera's consumer wants the newest frame, not a backlog, and a frame lost on
-        the way never comes again (live sources do not re-send).
+    def _finish_live(self, ready: list[Frame]) -> None:
+        """Live mode: a camera's consumer wants every frame it can have, soon, and never a backlog;
+        a frame lost on the way never comes again (live sources do not re-send).
 
-        The rule: of each run, the newest ready frame to compute is processed, and every older frame
-        of the run this replica holds (ready with it, or still waiting for an input that was lost or
-        is late) is passed over: counted in `superseded` and sent on as a marker with meta
-        `superseded`, so the sinks ack it and the operators after this one pass it on without
-        computing. Inputs of a passed-over frame that come later are ignored. Frames that need no
-        computing (an input is an error, skip or superseded marker) are passed on at once and do not
-        compete. An ordered operator thus sees its run's frames in increasing seq order with gaps
-        where frames were passed over (the world model bridges a gap), never waits for an earlier
-        frame, and a replica restarted mid-run starts from the newest frame (no rewind: a live
-        source's old frames are worthless).
+        The rule, per run: of the ready frames to compute, the newest ones this operator can compute
+        in one camera period (by its running mean compute time; at least the newest) are processed,
+        oldest first, and the older ones are passed over: counted in `superseded` and sent on as a
+        marker with meta `superseded`, so the sinks ack it and the operators after this one pass it
+        on without computing. Frames that need no computing (an input is an error, skip or
+        superseded marker) are passed on at once and do not compete.
+
+        A frame still waiting for an input stays until its deadline (`_deadline_s`; then it is
+        passed over, `FrameJoiner.pop_expired`), and is processed if it completes before: a join
+        whose inputs came by paths of different speed loses nothing. An ordered operator, which
+        cannot go back, passes over its older waiting frames when it processes a newer one; it thus
+        sees its run's frames in increasing seq order with gaps (the world model bridges a gap),
+        and a replica restarted mid-run starts from the newest frame (no rewind: a live source's old
+        frames are worthless).
         """
         to_compute: list[Frame] = []
         for frame in sorted(ready, key=lambda f: f.seq):
@@ -580,14 +598,17 @@ class OperatorRuntime:
                 to_compute.append(frame)
             else:
                 self._finish(frame)
-        newest = {frame.run: frame for frame in to_compute}  # sorted by seq: the last of each run wins
-        for run, frame in newest.items():
-            passed = {f.seq: f.stamp_ns for f in to_compute if f.run == run and f.seq < frame.seq}
-            passed.update(self.joiner.discard_older(run, frame.seq))
-            for seq in sorted(passed):
-                self._pass_over(run, seq, passed[seq])
-            self._next_seq[run] = frame.seq + 1
-            self._finish(frame)
+        fits = max(1, int(self._frame_period_s / self._compute_s)) if self._compute_s > 0 else len(to_compute)
+        for run in dict.fromkeys(frame.run for frame in to_compute):
+            frames = [frame for frame in to_compute if frame.run == run]
+            for frame in frames[:-fits]:
+                self._pass_over(run, frame.seq, frame.stamp_ns)
+            for frame in frames[-fits:]:
+                if self.cls.ordered:
+                    for seq, stamp_ns in sorted(self.joiner.discard_older(run, frame.seq).items()):
+                        self._pass_over(run, seq, stamp_ns)
+                self._next_seq[run] = max(self._next_seq[run], frame.seq + 1)
+                self._finish(frame)
 
     def _pass_over(self, run: str, seq: int, stamp_ns: int) -> None:
         """Send a superseded marker for a frame this live operator will not process."""
@@ -632,6 +653,8 @@ class OperatorRuntime:
         try:
             outputs = self.operator.process(frame)
             self.stats.cpu_s += time.process_time() - cpu_start
+            took = time.perf_counter() - start
+            self._compute_s = took if not self._compute_s else (1 - COMPUTE_EMA) * self._compute_s + COMPUTE_EMA * took
             self.stats.computed += 1
             if skipped:  # an in-order operator saw the frame for its state; nobody scores it
                 payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
