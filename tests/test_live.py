@@ -160,3 +160,40 @@ def test_a_slow_ordered_operator_in_live_mode_passes_over_lost_and_stale_frames_
     passed = int(ordered[header.index("passed")])
     assert passed >= 1 and len(processed) + passed == frames  # every frame processed or counted
     assert "given up" not in result.stdout  # the sink acked every frame, passed-over ones by their markers
+
+
+@pytest.mark.slow
+def test_a_live_source_starts_its_clock_once_the_graph_has_taken_its_first_frame(tmp_path, hub_endpoint):
+    """An operator whose first frame costs 1.5 s (start-up) and later ones 40 ms, at 10 Hz: had the
+    camera gone on meanwhile, the backlog would have had frames passed over. The source waits for
+    the first frame's ack before its clock starts, so every frame is processed."""
+    frames = 40
+    graph = {
+        "name": "toy_priming",
+        "hub": hub_endpoint,
+        "operators": [
+            {
+                "id": "source",
+                "uses": "tests.toy_ops:CounterSource",
+                "params": {"frames": frames, "pacing": "realtime", "rate_hz": 10},
+            },
+            {
+                "id": "scale",
+                "uses": "tests.toy_ops:Scale",
+                "inputs": {"x": "source/value"},
+                "params": {"delay_s": 0.04, "first_delay_s": 1.5},
+            },
+            {
+                "id": "sink",
+                "uses": "tests.toy_ops:Logger",
+                "inputs": {"x": "scale/y"},
+                "params": {"log": str(tmp_path / "sink.jsonl")},
+            },
+        ],
+    }
+    path = tmp_path / "graph.yaml"
+    path.write_text(yaml.safe_dump(graph, sort_keys=False))
+    result = run_umad("launch", str(path), timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    reached = [json.loads(line)["seq"] for line in (tmp_path / "sink.jsonl").read_text().splitlines()]
+    assert reached == list(range(frames))

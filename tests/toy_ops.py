@@ -40,7 +40,10 @@ class Scale(Operator):
         model_config = ConfigDict(extra="forbid")
         factor: float = 2.0
         delay_s: float = 0.0
+        first_delay_s: float = 0.0  # the first frame's extra time, as an operator's start-up
         fail_on_seq: int = -1
+
+    started = False
 
     def update_params(self, params):
         """Refuses a change the schema accepts, as an operator whose new weight file does not load."""
@@ -51,7 +54,8 @@ class Scale(Operator):
     def process(self, frame):
         if frame.seq == self.params.fail_on_seq:
             raise RuntimeError("asked to fail")
-        time.sleep(self.params.delay_s)
+        time.sleep(self.params.delay_s + (self.params.first_delay_s if not self.started else 0.0))
+        self.started = True
         return {"y": Output({"x": frame.inputs["x"].arrays["x"] * self.params.factor}, {"pid": os.getpid()})}
 
 

@@ -653,8 +653,9 @@ class OperatorRuntime:
         try:
             outputs = self.operator.process(frame)
             self.stats.cpu_s += time.process_time() - cpu_start
-            took = time.perf_counter() - start
-            self._compute_s = took if not self._compute_s else (1 - COMPUTE_EMA) * self._compute_s + COMPUTE_EMA * took
+            if self.stats.computed:  # an operator's first frame is start-up (first calls, memory): not counted
+                took = time.perf_counter() - start
+                self._compute_s = (1 - COMPUTE_EMA) * self._compute_s + COMPUTE_EMA * took if self._compute_s else took
             self.stats.computed += 1
             if skipped:  # an in-order operator saw the frame for its state; nobody scores it
                 payloads = self.markers(frame.run, frame.seq, frame.stamp_ns, {"skip": True})
