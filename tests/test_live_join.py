@@ -1,7 +1,8 @@
 """Live mode's rule at a join, one replica in this process on an isolated Zenoh session with frames
 fed to its queue: a frame whose last input is only late is still used, a frame whose input was
-lost is passed over at its deadline, a cheap operator catches up after a stall, and an operator
-slower than the camera takes only the newest of its backlog."""
+lost is passed over at its deadline once a newer one is processed, the newest is never given up,
+a cheap operator catches up after a stall, and an operator slower than the camera takes only the
+newest of its backlog."""
 
 from __future__ import annotations
 
@@ -86,13 +87,17 @@ def test_live_join_uses_late_frames_passes_over_lost_ones_and_catches_up(join):
     assert join.stats.superseded == 0
 
     started = time.monotonic()
-    feed(join, [a(2)], lambda: join.stats.superseded == 1)  # 2's second input never comes
+    feed(join, [a(2), a(3), b(3)], lambda: join.stats.superseded == 1)  # 2's second input never comes
     assert time.monotonic() - started >= 0.5  # passed over at its deadline, not before
     feed(join, [b(2)], lambda: True)  # a late input of a passed-over frame is ignored
-    assert not join.joiner.pending
+    assert not join.joiner.pending and processed(join) == [1, 0, 3]
 
-    feed(join, [a(3), b(3), a(4), b(4), a(5), b(5)], lambda: processed(join)[-1] == 5)
-    assert processed(join) == [1, 0, 3, 4, 5] and join.stats.superseded == 1  # cheap: the backlog caught up
+    feed(join, [a(4)], lambda: True)
+    time.sleep(0.6)
+    feed(join, [b(4)], lambda: processed(join)[-1] == 4)  # the newest frame is never given up
+
+    feed(join, [a(5), b(5), a(6), b(6), a(7), b(7)], lambda: processed(join)[-1] == 7)
+    assert processed(join) == [1, 0, 3, 4, 5, 6, 7] and join.stats.superseded == 1  # cheap: the backlog caught up
 
 
 def test_an_operator_slower_than_the_camera_takes_the_newest_of_its_backlog(join):

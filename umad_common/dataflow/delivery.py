@@ -142,11 +142,16 @@ class FrameJoiner:
             del self.pending[(run, s)]
         return older
 
-    def pop_expired(self, deadline_s: float) -> dict[tuple[str, int], int]:
-        """Forget the frames that waited longer than `deadline_s` for an input and are still not
-        ready (live mode: the input was lost); returns their {(run, seq): stamp_ns}."""
+    def pop_expired(self, deadline_s: float, finished: dict[str, int]) -> dict[tuple[str, int], int]:
+        """Forget the frames still not ready after `deadline_s` that are older than a frame of their
+        run already finished (`finished`: run -> newest finished seq + 1): live mode, their input
+        was lost. Returns their {(run, seq): stamp_ns}."""
         now = time.monotonic()
-        expired = {key: entry.stamp_ns for key, entry in self.pending.items() if now - entry.first_seen > deadline_s}
+        expired = {
+            key: entry.stamp_ns
+            for key, entry in self.pending.items()
+            if now - entry.first_seen > deadline_s and key[1] < finished.get(key[0], 0)
+        }
         for key in expired:
             del self.pending[key]
         return expired

@@ -509,7 +509,7 @@ class OperatorRuntime:
             ready = self.joiner.pop_ready(self._routes()[0], deadline_s)
             if self.live:
                 self._finish_live(ready)
-                for (run, seq), stamp_ns in self.joiner.pop_expired(deadline_s).items():
+                for (run, seq), stamp_ns in self.joiner.pop_expired(deadline_s, self._next_seq).items():
                     self._pass_over(run, seq, stamp_ns)
                 continue
             for frame in ready:
@@ -584,9 +584,11 @@ class OperatorRuntime:
         on without computing. Frames that need no computing (an input is an error, skip or
         superseded marker) are passed on at once and do not compete.
 
-        A frame still waiting for an input stays until its deadline (`_deadline_s`; then it is
-        passed over, `FrameJoiner.pop_expired`), and is processed if it completes before: a join
-        whose inputs came by paths of different speed loses nothing. An ordered operator, which
+        A frame still waiting for an input while a newer one was processed stays until its deadline
+        (`_deadline_s`; then it is passed over, `FrameJoiner.pop_expired`), and is processed if it
+        completes before: a join whose inputs came by paths of different speed loses nothing. The
+        newest frame is never given up (a slow input is no lost one); at the run's end the frames
+        still waiting are passed over (`_end_run`). An ordered operator, which
         cannot go back, passes over its older waiting frames when it processes a newer one; it thus
         sees its run's frames in increasing seq order with gaps (the world model bridges a gap),
         and a replica restarted mid-run starts from the newest frame (no rewind: a live source's old
@@ -696,6 +698,9 @@ class OperatorRuntime:
         self._ended[run] = payloads
         self._cache.put((run, msg.seq), payloads)
         self._cache.last_republish[(run, msg.seq)] = time.monotonic()
+        if self.live:  # frames still waiting for an input the source gave up on
+            for seq, stamp_ns in sorted(self.joiner.discard_older(run, msg.seq).items()):
+                self._pass_over(run, seq, stamp_ns)
         self._next_seq.pop(run, None)
         self._in_order.pop(run, None)
         self._publish_and_ack(run, msg.seq, payloads)

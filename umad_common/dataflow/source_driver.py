@@ -60,8 +60,8 @@ class SourceDriver:
     `realtime` pacing publishes at `rate_hz` whatever the acks say and never re-sends (a late frame
     of a live sensor is worthless), yet it still collects acks: a run's end-of-run marker goes out
     only once its frames are acked or have timed out, so no sink closes a run before its last frame.
-    Its clock starts once the first frame is acked (`_prime`): the graph's one-time start-up costs
-    are paid on that frame, not by the frames a camera sends meanwhile.
+    Its clock starts once the first frame is acked (`_prime`): the graph's start-up costs are paid
+    on that frame, not by the frames a camera would send meanwhile.
     """
 
     def __init__(self, host: SourceHost, source: Source, graph: Graph, max_frames: int | None = None):
@@ -125,17 +125,23 @@ class SourceDriver:
         host.log.info("source finished: %d frames sent, %d retransmits", sent, host.stats.retransmits)
 
     def _prime(self) -> None:
-        """Realtime pacing: wait until the first frame is acked (or `ack_timeout_s`). Each operator's
-        first frame costs what no later one does (first inputs, memory, kernels; 0.6 s from the
-        camera to the refined map in the live graph, against 60 ms later), and a camera that went on
-        meanwhile would have its next frames passed over."""
+        """Realtime pacing at start-up: wait for the first frame's ack (at most `ack_timeout_s`)
+        before the camera's clock starts. Each process's first frame costs what no later one does
+        (first messages, memory, kernels: 0.6 s from the camera to the refined map in the live
+        graph on 2 cores, against 60 ms later), and a camera that went on meanwhile would have its
+        next frames passed over."""
         host = self.host
-        deadline = time.monotonic() + self.pacing.ack_timeout_s
+        sent_at = time.monotonic()
+        deadline = sent_at + self.pacing.ack_timeout_s
         while self.inflight and not host.shutdown.is_set() and time.monotonic() < deadline:
             self._service(ACK_WAIT_S)
         if self.inflight:
             host.log.warning(
                 "first frame not acked after %.1fs: starting the camera's clock anyway", self.pacing.ack_timeout_s
+            )
+        else:
+            host.log.info(
+                "first frame acked after %.0f ms: the camera's clock starts", 1e3 * (time.monotonic() - sent_at)
             )
 
     def _next_frame(self, frames: Iterator[SourceFrame]) -> SourceFrame | None:
