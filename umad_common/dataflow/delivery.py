@@ -61,6 +61,7 @@ class Stats:
     param_changes: int = 0
     busy_s: float = 0.0  # sources: first send to last ack
     acked: int = 0  # sources: frames every sink has acked
+    primed: int = 0  # realtime sources: frames sent one at a time at start-up, before the clock started
     total_frames: int | None = None  # sources: frames the stream will have, when known
     computed: int = 0  # frames the operator's work ran on (not markers)
     cpu_s: float = 0.0
