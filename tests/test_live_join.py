@@ -101,9 +101,9 @@ def test_live_join_uses_late_frames_passes_over_lost_ones_and_catches_up(join):
 
 
 def test_an_operator_slower_than_the_camera_takes_the_newest_of_its_backlog(join):
-    join._compute_s = 0.25  # as if each frame took 2.5 camera periods
+    join._compute_s = 0.25  # as if each frame took 2.5 camera periods: more than the catch-up budget (2)
     feed(join, [a(0), b(0), a(1), b(1), a(2), b(2)], lambda: processed(join) == [2])
     assert join.stats.superseded == 2
-    join._compute_s = 0.04  # two frames fit in a period
+    join._compute_s = 0.08  # two frames fit in the catch-up budget
     feed(join, [a(3), b(3), a(4), b(4), a(5), b(5)], lambda: processed(join)[-1] == 5)
     assert processed(join) == [2, 4, 5] and join.stats.superseded == 3

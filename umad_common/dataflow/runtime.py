@@ -74,6 +74,7 @@ log = logging.getLogger("umad.runtime")
 STATS_INTERVAL_S = 1.0
 LIVE_JOIN_POLL_S = 0.05  # how often a live join with frames waiting checks their deadline
 COMPUTE_EMA = 0.2  # weight of the newest frame in the running mean of an operator's compute time
+CATCH_UP_PERIODS = 2  # live mode: an operator computes the newest ready frames it can in this many camera periods
 IDLE_WAIT_S = 0.25  # an idle operator's sleep: the longest a stop signal waits to be seen
 BAD_MESSAGE_LOG_FIRST = 10  # malformed messages logged one by one; later ones are summarised
 BAD_MESSAGE_LOG_INTERVAL_S = 5.0
@@ -578,8 +579,10 @@ class OperatorRuntime:
         a frame lost on the way never comes again (live sources do not re-send).
 
         The rule, per run: of the ready frames to compute, the newest ones this operator can compute
-        in one camera period (by its running mean compute time; at least the newest) are processed,
-        oldest first, and the older ones are passed over: counted in `superseded` and sent on as a
+        in `CATCH_UP_PERIODS` camera periods (by its running mean compute time; at least the newest)
+        are processed, oldest first, and the older ones are passed over. One period is a frame's
+        own; the second absorbs one stall of a busy machine, while a longer stall is passed over
+        rather than queued. A passed-over frame is counted in `superseded` and sent on as a
         marker with meta `superseded`, so the sinks ack it and the operators after this one pass it
         on without computing. Frames that need no computing (an input is an error, skip or
         superseded marker) are passed on at once and do not compete.
@@ -600,7 +603,8 @@ class OperatorRuntime:
                 to_compute.append(frame)
             else:
                 self._finish(frame)
-        fits = max(1, int(self._frame_period_s / self._compute_s)) if self._compute_s > 0 else len(to_compute)
+        budget_s = CATCH_UP_PERIODS * self._frame_period_s
+        fits = max(1, int(budget_s / self._compute_s)) if self._compute_s > 0 else len(to_compute)
         for run in dict.fromkeys(frame.run for frame in to_compute):
             frames = [frame for frame in to_compute if frame.run == run]
             for frame in frames[:-fits]:
