@@ -15,7 +15,7 @@ clock, and matches them by (run, seq). Reported:
   a newer one, `frames_superseded`) and `frames_failed` (an error marker arrived instead);
   `frames_missed` is their sum;
 - `frames_primed`: frames the replayer sent one at a time at start-up, each once the one before was
-  acked, until the graph answered within one camera period (at most 3 s): they are in every
+  acked, until the graph answered three in a row within one camera period (at most 3 s): they are in every
   figure here, kept or not, but were not sent at the camera's rate;
 - `latency_ms`: from the camera message's arrival to the refined map's (`camera_to_refined`) and to
   the frame result's (`camera_to_result`) at the same subscriber, p50 / p99 / max, over the frames

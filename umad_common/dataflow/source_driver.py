@@ -21,6 +21,7 @@ from umad_common.dataflow.pacing import SourceParams
 
 LIVE_WAIT_S = 60.0
 PRIME_S = 3.0  # realtime pacing: the longest start-up before the camera's clock starts (`_prime`)
+PRIME_QUICK = 3  # ... which starts once this many frames in a row came back within one camera period
 ACK_WAIT_S = 0.05  # a full window's wait for acks (an ack ends it at once): re-sends and commands wait this long
 
 
@@ -78,6 +79,7 @@ class SourceDriver:
         self.inflight: dict[tuple[str, int], tuple[list[tuple[str, bytes]], float, float]] = {}
         self.e2e = LatencyWindow()
         self.markers: set[tuple[str, int]] = set()  # end-of-run keys, which are not frames
+        self._quick = 0  # start-up: frames in a row acked within one camera period (`_prime`)
 
     @property
     def pacing(self) -> SourceParams:
@@ -128,18 +130,20 @@ class SourceDriver:
 
     def _prime(self, until: float) -> bool:
         """Realtime pacing at start-up: wait for the frame just sent to be acked; True while the
-        graph is still warming up, that is until a frame comes back within one camera period, for
-        at most `PRIME_S` in all (a frame lost then is left to its ack timeout). Each process's first
-        frames cost what no later one does (first messages, memory, kernels: 0.4-0.9 s from the
-        camera to the result for the first two frames of the live graph on 2 cores, against 65 ms
-        later), and a camera that went on meanwhile would have its next frames passed over."""
+        graph is still warming up, that is until `PRIME_QUICK` frames in a row came back within one
+        camera period, for at most `PRIME_S` in all (a frame lost then is left to its ack timeout).
+        Each process's first frames cost what no later one does (first messages, memory, kernels:
+        0.4-0.9 s from the camera to the result for the first two frames of the live graph on 2
+        cores, 200-500 ms for several more, against 65 ms later), and a camera that went on
+        meanwhile would have its next frames passed over."""
         host = self.host
         host.stats.primed += 1
         sent_at = time.monotonic()
         while self.inflight and not host.shutdown.is_set() and time.monotonic() < until:
             self._service(ACK_WAIT_S)
         took = time.monotonic() - sent_at
-        if not self.inflight and took > 1.0 / self.pacing.rate_hz and time.monotonic() < until:
+        self._quick = self._quick + 1 if not self.inflight and took <= 1.0 / self.pacing.rate_hz else 0
+        if not self.inflight and self._quick < PRIME_QUICK and time.monotonic() < until:
             return True
         host.log.info(
             "the camera's clock starts after %d frame(s) sent one at a time (the last %s)",
