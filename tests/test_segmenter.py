@@ -465,3 +465,31 @@ def test_segmenter_on_the_camera_gives_the_masks_it_gives_on_the_world_models_ta
     for wired in (set(), {"frame", "camera"}):
         (problem,) = Segmenter.wiring_problems(params, wired)
         assert "exactly one image input" in problem
+
+
+def sparse_points(x: float, count: int) -> np.ndarray:
+    """`count` lidar hits 0.3 m apart up a thin object x m ahead (0.3-0.9 m above the ground): what a
+    64-channel lidar returns from a small obstacle at 20-40 m."""
+    z = 0.3 + 0.3 * np.arange(count) - MOUNT
+    return np.column_stack([np.full(count, x), np.zeros(count), z, np.ones(count)]).astype(np.float32)
+
+
+def ground_only() -> np.ndarray:
+    cloud = box_on_a_plane()
+    return cloud[cloud[:, 2] < -MOUNT + 0.01]
+
+
+@pytest.mark.parametrize(
+    ("x", "count", "near_range", "objects"),
+    [
+        (30.0, 3, 0.0, 0),  # every point counts once: 3 hits < 4, the far obstacle is no object
+        (30.0, 3, 10.0, 1),  # at 30 m each hit counts as 2 (9, capped at 4 / 2): an object
+        (30.0, 1, 10.0, 0),  # one stray hit is never an object, however far (far_min_points 2)
+        (8.0, 3, 10.0, 0),  # within near_range the count is as before
+    ],
+)
+def test_geometry_near_range_lets_a_far_obstacle_with_few_lidar_hits_be_an_object(x, count, near_range, objects):
+    cloud = np.concatenate([ground_only(), sparse_points(x, count)])
+    options = {**ANOVOX_RIG, "near_range": near_range}
+    masks = Segmenter({"method": "geometry", "options": options}).process(lidar_frame(cloud))["masks"].arrays["masks"]
+    assert masks.shape[0] == objects

@@ -150,6 +150,16 @@ class Geometry(SegmenterMethod):
         )
         cluster_eps: float = Field(0.7, gt=0, description=f"DBSCAN: neighbourhood radius (m); {TUNED}")
         cluster_min_points: int = Field(4, ge=1, description="DBSCAN: points in a neighbourhood to seed a cluster")
+        near_range: float = Field(
+            0.0,
+            ge=0,
+            description="beyond this range (m) a point counts as (range / near_range)^2 points toward "
+            "cluster_min_points, as the lidar's hits on an object thin out with the square of its range; 0: every "
+            "point counts once",
+        )
+        far_min_points: int = Field(
+            2, ge=1, description="with near_range: the fewest points that seed a cluster however far (caps the count)"
+        )
         share: float = Field(
             0.5,
             gt=0,
@@ -241,10 +251,11 @@ class Geometry(SegmenterMethod):
         plane = fit_ground(xyz, p.ground_iterations, p.ground_tolerance)
         above = xyz @ plane[:3] + plane[3] >= p.ground_height
         labels = np.full(len(xyz), -2, np.int64)  # -2 ground, -1 unclustered, >= 0 object
-        if above.sum() >= p.cluster_min_points:
+        weight = self.point_weights(np.hypot(xyz[above, 0], xyz[above, 1]))
+        if weight.sum() >= p.cluster_min_points:
             dbscan = self.dbscan(eps=p.cluster_eps, min_samples=p.cluster_min_points, algorithm="ball_tree")
-            labels[above] = dbscan.fit_predict(xyz[above])  # the ball tree finds the same neighbours as the
-            #   default k-d tree in 0.65x the CPU on these clouds (about 2700 points, 47 neighbours each)
+            labels[above] = dbscan.fit_predict(xyz[above], sample_weight=weight)  # the ball tree finds the same
+            #   neighbours as the default k-d tree in 0.65x the CPU on these clouds (about 2700 points, 47 each)
         else:
             labels[above] = -1
         count = int(labels.max()) + 1
@@ -269,6 +280,15 @@ class Geometry(SegmenterMethod):
         ids, sizes = np.unique(owner[owner >= 0], return_counts=True)
         ids = ids[np.argsort(-sizes, kind="stable")]
         return owner[None] == ids[:, None, None]
+
+    def point_weights(self, distance: np.ndarray) -> np.ndarray:
+        """What each point counts toward `cluster_min_points` at its range `distance` (m): 1 within
+        `near_range`, (distance / near_range)^2 beyond, at most cluster_min_points / far_min_points."""
+        p = self.params
+        if p.near_range <= 0:
+            return np.ones(len(distance))
+        cap = max(p.cluster_min_points / p.far_min_points, 1.0)
+        return np.clip((distance / p.near_range) ** 2, 1.0, cap)
 
     def _segments_joining(self, hit: np.ndarray, rest_labels: np.ndarray, count: int) -> np.ndarray:
         """Per rest segment, the object it joins (-1 none): the one holding at least `share` of the
