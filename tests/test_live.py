@@ -103,6 +103,34 @@ def test_bench_live_reports_kept_missed_latency_and_cpu_per_operator(hub_endpoin
     assert "mnad" not in operators and operators["world_model"]["cpu_ms"] > 0
 
 
+def launch_chain(tmp_path, name: str, hub: str, source: dict, operator: dict):
+    """Launch the live toy graph `source` -> `operator` (id, uses, inputs, params) -> a sink that logs
+    every frame it gets to sink.jsonl; the launcher's result."""
+    graph = {
+        "name": name,
+        "hub": hub,
+        "operators": [
+            {"id": "source", **source},
+            operator,
+            {
+                "id": "sink",
+                "uses": "tests.toy_ops:Logger",
+                "inputs": {"x": f"{operator['id']}/y"},
+                "params": {"log": str(tmp_path / "sink.jsonl")},
+            },
+        ],
+    }
+    path = tmp_path / "graph.yaml"
+    path.write_text(yaml.safe_dump(graph, sort_keys=False))
+    result = run_umad("launch", str(path), timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return result
+
+
+def logged_seqs(path) -> list[int]:
+    return [json.loads(line)["seq"] for line in path.read_text().splitlines()]
+
+
 @pytest.mark.slow
 def test_a_slow_ordered_operator_in_live_mode_passes_over_lost_and_stale_frames_and_never_stalls(
     tmp_path, hub_endpoint
@@ -113,51 +141,25 @@ def test_a_slow_ordered_operator_in_live_mode_passes_over_lost_and_stale_frames_
     the run. Now it processes the newest frame it has, the rest are passed over and counted, the
     sink acks the passed-over frames' markers, and the run's last frame reaches the sink."""
     frames = 80
-    graph = {
-        "name": "toy_live",
-        "hub": hub_endpoint,
-        "operators": [
-            {
-                "id": "source",
-                "uses": "tests.toy_ops:LossyPairSource",
-                "params": {
-                    "frames": frames,
-                    "pacing": "realtime",
-                    "rate_hz": 20,
-                    "lose_extra": [5],
-                    "ack_timeout_s": 60,
-                },
-            },
-            {
-                "id": "ordered",
-                "uses": "tests.toy_ops:SlowOrdered",
-                "inputs": {"x": "source/value", "extra": "source/extra"},
-                "params": {"delay_s": 0.15, "log": str(tmp_path / "ordered.jsonl")},
-            },
-            {
-                "id": "sink",
-                "uses": "tests.toy_ops:Logger",
-                "inputs": {"x": "ordered/y"},
-                "params": {"log": str(tmp_path / "sink.jsonl")},
-            },
-        ],
+    source = {
+        "uses": "tests.toy_ops:LossyPairSource",
+        "params": {"frames": frames, "pacing": "realtime", "rate_hz": 20, "lose_extra": [5], "ack_timeout_s": 60},
     }
-    path = tmp_path / "graph.yaml"
-    path.write_text(yaml.safe_dump(graph, sort_keys=False))
-    result = run_umad("launch", str(path), timeout=300)
-    assert result.returncode == 0, result.stdout + result.stderr
-
-    def seqs(name: str) -> list[int]:
-        return [json.loads(line)["seq"] for line in (tmp_path / name).read_text().splitlines()]
-
-    processed, reached = seqs("ordered.jsonl"), seqs("sink.jsonl")
+    ordered = {
+        "id": "ordered",
+        "uses": "tests.toy_ops:SlowOrdered",
+        "inputs": {"x": "source/value", "extra": "source/extra"},
+        "params": {"delay_s": 0.15, "log": str(tmp_path / "ordered.jsonl")},
+    }
+    result = launch_chain(tmp_path, "toy_live", hub_endpoint, source, ordered)
+    processed, reached = logged_seqs(tmp_path / "ordered.jsonl"), logged_seqs(tmp_path / "sink.jsonl")
     assert processed == sorted(set(processed)) and 5 not in processed  # in order, the lost frame passed over
     assert processed[-1] == frames - 1 and reached[-1] == frames - 1  # the stream went on to the run's end
     assert set(reached) <= set(processed) and len(processed) < frames - 1  # stale frames passed over too
     lines = result.stdout.splitlines()
     header = next(line for line in lines if line.endswith("(times: ms per frame)")).split()
-    ordered = next(line for line in lines if line.startswith("ordered.r0")).split()
-    passed = int(ordered[header.index("passed")])
+    ordered_stats = next(line for line in lines if line.startswith("ordered.r0")).split()
+    passed = int(ordered_stats[header.index("passed")])
     assert passed >= 1 and len(processed) + passed == frames  # every frame processed or counted
     assert "given up" not in result.stdout  # the sink acked every frame, passed-over ones by their markers
 
@@ -168,32 +170,12 @@ def test_a_live_source_starts_its_clock_once_the_graph_has_taken_its_first_frame
     camera gone on meanwhile, the backlog would have had frames passed over. The source waits for
     the first frame's ack before its clock starts, so every frame is processed."""
     frames = 40
-    graph = {
-        "name": "toy_priming",
-        "hub": hub_endpoint,
-        "operators": [
-            {
-                "id": "source",
-                "uses": "tests.toy_ops:CounterSource",
-                "params": {"frames": frames, "pacing": "realtime", "rate_hz": 10},
-            },
-            {
-                "id": "scale",
-                "uses": "tests.toy_ops:Scale",
-                "inputs": {"x": "source/value"},
-                "params": {"delay_s": 0.04, "first_delay_s": 1.5},
-            },
-            {
-                "id": "sink",
-                "uses": "tests.toy_ops:Logger",
-                "inputs": {"x": "scale/y"},
-                "params": {"log": str(tmp_path / "sink.jsonl")},
-            },
-        ],
+    source = {"uses": "tests.toy_ops:CounterSource", "params": {"frames": frames, "pacing": "realtime", "rate_hz": 10}}
+    scale = {
+        "id": "scale",
+        "uses": "tests.toy_ops:Scale",
+        "inputs": {"x": "source/value"},
+        "params": {"delay_s": 0.04, "first_delay_s": 1.5},
     }
-    path = tmp_path / "graph.yaml"
-    path.write_text(yaml.safe_dump(graph, sort_keys=False))
-    result = run_umad("launch", str(path), timeout=300)
-    assert result.returncode == 0, result.stdout + result.stderr
-    reached = [json.loads(line)["seq"] for line in (tmp_path / "sink.jsonl").read_text().splitlines()]
-    assert reached == list(range(frames))
+    launch_chain(tmp_path, "toy_priming", hub_endpoint, source, scale)
+    assert logged_seqs(tmp_path / "sink.jsonl") == list(range(frames))
