@@ -6,7 +6,8 @@ Per frame:
    camera and lidar mounts (the scenario's sensor_setup.json, which the replayer sends as the lidar
    message's meta `sensors`; or the options, whose defaults are AnoVox's);
 2. fit the ground plane with RANSAC and drop the points less than `ground_height` above it;
-3. cluster the remaining points with DBSCAN: one cluster per object;
+3. cluster the remaining points with DBSCAN: one cluster per object (with `near_range`, a far point
+   counts as several, as a far object returns fewer hits);
 4. grow each cluster into its image region: the pixels its points hit (closed, holes filled), plus
    every segment of the `rest` method whose lidar-hit pixels are mostly that cluster's;
 5. the `rest` method's segments, less the objects, cover everything else, so the masks tile the
