@@ -84,15 +84,34 @@ def test_frame_result_operator_on_a_frame_with_camera_and_partial_map():
         FrameResult({"top_k": -1})
 
 
+def test_bench_live_counts_frames_and_times_only_those_sent_at_the_cameras_rate():
+    from umad_common.benchmarks.live import Arrivals, frame_counts
+
+    arrivals = Arrivals()
+    for seq in range(6):  # frames 0-1 primed 10 ms apart, then 2-5 at 4 Hz; each result 50 ms later
+        sent = 0.01 * seq if seq < 2 else 0.01 + 0.25 * (seq - 1)
+        arrivals.times["camera"][("drive", seq)] = sent
+        if seq != 4:
+            arrivals.times["result"][("drive", seq)] = sent + 0.05
+    metas = {0: {}, 1: {}, 2: {"partial": True}, 3: {}, 4: {"superseded": True}, 5: {}}
+    arrivals.result_meta = {("drive", seq): meta for seq, meta in metas.items()}
+    counts = frame_counts(arrivals, sent=7, primed=2)
+    assert (counts["frames_kept"], counts["frames_partial"], counts["frames_superseded"]) == (4, 1, 1)
+    assert counts["frames_dropped"] == 2 and counts["frames_missed"] == 3  # seq 6 never answered
+    assert counts["stream_s"] == pytest.approx(0.8) and counts["fps_kept"] == pytest.approx(2 / 0.8)
+
+
 @pytest.mark.slow
 def test_bench_live_reports_kept_missed_latency_and_cpu_per_operator(hub_endpoint):
     from umad_common.benchmarks.live import bench_live
 
-    result = bench_live(frames=10, hub=hub_endpoint, rate_hz=4.0)  # a slow rate: the test runs beside others
-    assert result["frames_sent"] == 10 and result["frames_failed"] == 0
+    result = bench_live(frames=16, hub=hub_endpoint, rate_hz=4.0)  # a slow rate: the test runs beside others
+    assert result["frames_sent"] == 16 and result["frames_failed"] == 0
     counted = ("frames_kept", "frames_partial", "frames_dropped")
-    assert sum(result[k] for k in counted) == 10 and result["frames_missed"] == 10 - result["frames_kept"]
-    assert result["frames_kept"] >= 1 and 0 < result["fps_kept"] <= 4.5
+    assert sum(result[k] for k in counted) == 16 and result["frames_missed"] == 16 - result["frames_kept"]
+    at_rate = 16 - result["frames_primed"]  # priming sends at most 3 s of frames one at a time
+    assert result["frames_kept"] >= 1 and at_rate >= 2
+    assert 0 < result["fps_kept"] <= 4.0 * at_rate / (at_rate - 1)  # n frames 1/rate apart span (n - 1)/rate
     for name in ("camera_to_refined", "camera_to_result"):
         latency = result["latency_ms"][name]
         assert latency["frames"] >= result["frames_kept"]

@@ -7,16 +7,17 @@ whatever the graph keeps up with and never re-sends. A subscriber in this proces
 graph's hub, notes when each frame's camera message, refined map and frame result arrive, on one
 clock, and matches them by (run, seq). Reported:
 
-- `fps_kept`: frames whose result arrived complete (not partial) over the stream's wall time (the
-  first camera message's arrival to the last result's), so a graph that falls behind is not
-  flattered by a backlog it clears after the camera stopped;
+- `fps_kept`: of the frames sent at the camera's rate (after `frames_primed`), those whose result
+  arrived complete (not partial), over their wall time (the first one's camera message's arrival to
+  the last result's), so a graph that falls behind is not flattered by a backlog it clears after
+  the camera stopped, nor by the start-up frames it was sent faster than the camera's rate;
 - `frames_partial` (fusion's live deadline, `deadline_ms`, passed without every difference map),
   `frames_dropped` (no result arrived, or a superseded marker: an operator passed the frame over for
   a newer one, `frames_superseded`) and `frames_failed` (an error marker arrived instead);
   `frames_missed` is their sum;
 - `frames_primed`: frames the replayer sent one at a time at start-up, each once the one before was
   acked, until the graph answered three in a row within one camera period (at most 3 s): they are in every
-  figure here, kept or not, but were not sent at the camera's rate;
+  figure here but `fps_kept`, kept or not, but were not sent at the camera's rate;
 - `latency_ms`: from the camera message's arrival to the refined map's (`camera_to_refined`) and to
   the frame result's (`camera_to_result`) at the same subscriber, p50 / p99 / max, over the frames
   where all three arrived. It leaves out
@@ -147,7 +148,7 @@ def bench_live(
         "rate_hz": rate_hz,
         "cores": len(os.sched_getaffinity(0)),
         "load_avg_1m_before": load_before[0],
-        **frame_counts(arrivals, source["computed"]),
+        **frame_counts(arrivals, source["computed"], source["primed"]),
         "latency_ms": {
             "camera_to_refined": percentiles(latencies(arrivals, "refined")),
             "camera_to_result": percentiles(latencies(arrivals, "result")),
@@ -164,25 +165,28 @@ def bench_live(
     }
 
 
-def frame_counts(arrivals: Arrivals, sent: int) -> dict:
-    """Results kept, partial, failed and dropped, and frames/s kept over the stream's wall time."""
+def frame_counts(arrivals: Arrivals, sent: int, primed: int) -> dict:
+    """Results kept, partial, failed and dropped, and frames/s kept over the wall time of the frames
+    sent at the camera's rate: all but the first `primed` (one drive, so its seq counts from 0)."""
     metas = arrivals.result_meta
     failed = sum(1 for meta in metas.values() if meta.get("error"))
     superseded = sum(1 for meta in metas.values() if meta.get("superseded"))
     partial = sum(1 for meta in metas.values() if meta.get("partial"))  # markers carry no `partial`
-    kept = len(metas) - failed - superseded - partial
+    complete = [key for key, meta in metas.items() if not any(meta.get(k) for k in ("error", "superseded", "partial"))]
     dropped = max(0, sent - len(metas)) + superseded
-    cameras, results = arrivals.times["camera"].values(), arrivals.times["result"].values()
+    cameras = [t for (_, seq), t in arrivals.times["camera"].items() if seq >= primed]
+    results = [t for (_, seq), t in arrivals.times["result"].items() if seq >= primed]
     stream_s = max(results) - min(cameras) if cameras and results else 0.0
+    kept_at_rate = sum(1 for _, seq in complete if seq >= primed)
     return {
-        "frames_kept": kept,
+        "frames_kept": len(complete),
         "frames_partial": partial,
         "frames_failed": failed,
         "frames_dropped": dropped,
         "frames_superseded": superseded,
         "frames_missed": partial + failed + dropped,
         "stream_s": stream_s,
-        "fps_kept": kept / stream_s if stream_s > 0 else 0.0,
+        "fps_kept": kept_at_rate / stream_s if stream_s > 0 else 0.0,
     }
 
 
