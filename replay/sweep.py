@@ -10,10 +10,12 @@ configurations at their best pixel-F1 thresholds. The same pass feeds the report
 anomaly's frame-relative score against frames since it first became visible.
 
 Rows and settings: the paper's 15 weight rows in its order, then ours (`WeightRow.extra`): two more
-groups, then every group again on `robust`-normalised maps (`umad_common.differences.robust` of the
-logged min-max maps, equal to robust normalisation of the raw maps), scored with no mask and `mean`
-refinement only; per segmenter the refinements mean, max, single (the paper's) and single_keep_raw
-(ours), plus no mask.
+groups; every group with SSIM again with the shift-tolerant SSIM (`ssim_shift`) in its place; then
+every group again on `robust`-normalised maps (`umad_common.differences.robust` of the logged
+min-max maps, equal to robust normalisation of the raw maps). Rows of the paper's maps at min-max
+are scored per segmenter with the refinements mean, max, single (the paper's) and single_keep_raw
+(ours), plus no mask; the others with `mean` refinement and no mask only. A row whose map the log
+lacks (a graph without `diff_ssim_shift`) is skipped.
 The log's metadata gives the protocol (`replay.protocol`): data, models, the PD network.
 """
 
@@ -49,6 +51,7 @@ EXTRA_GROUPS = (  # rows of ours after the paper's: TD in a triple
     ("ssim", "perceptual", "temporal"),
     ("abs", "ssim", "temporal"),
 )
+STAND_INS = {"ssim": "ssim_shift"}  # a paper map -> the map of ours scored again in its place
 
 
 @dataclass(frozen=True)
@@ -62,7 +65,8 @@ class WeightRow:
     @property
     def modes(self) -> tuple[str, ...]:
         """The refinements scored for this row: all of them on the paper's maps, `mean` on ours."""
-        return REFINE_MODES if self.normalization == "minmax" else ("mean",)
+        paper_maps = self.normalization == "minmax" and set(self.weights) <= set(PAPER_METRICS)
+        return REFINE_MODES if paper_maps else ("mean",)
 
 
 def paper_weight_rows() -> list[WeightRow]:
@@ -75,10 +79,17 @@ def paper_weight_rows() -> list[WeightRow]:
 
 
 def weight_rows() -> list[WeightRow]:
-    """Every row the sweep computes: the paper's 15, then ours: EXTRA_GROUPS at equal weights, then
-    all of those groups again on robust-normalised maps."""
+    """Every row the sweep computes: the paper's 15, then ours: EXTRA_GROUPS at equal weights, every
+    one of those groups that holds a map in STAND_INS again with the stand-in, then all of those
+    groups again on robust-normalised maps."""
     extras = [WeightRow({m: Fraction(1, len(group)) for m in group}, extra=True) for group in EXTRA_GROUPS]
-    minmax_rows = paper_weight_rows() + extras
+    groups = paper_weight_rows() + extras
+    stand_ins = [
+        WeightRow({STAND_INS.get(m, m): w for m, w in row.weights.items()}, extra=True)
+        for row in groups
+        if set(row.weights) & set(STAND_INS)
+    ]
+    minmax_rows = groups + stand_ins
     return minmax_rows + [WeightRow(row.weights, extra=True, normalization="robust") for row in minmax_rows]
 
 

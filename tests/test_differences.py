@@ -23,6 +23,7 @@ from umad_common.differences import (
     CalibrationFitter,
     DifferenceInputError,
     MseDifference,
+    ShiftedSsimDifference,
     SsimDifference,
     TemporalDifference,
     UnknownMetricError,
@@ -104,6 +105,38 @@ def test_ssim_of_identical_images_is_zero_and_tiny_images_are_refused():
     small = np.zeros((8, 30, 3), np.float32)
     with pytest.raises(DifferenceInputError, match="at least 11x11"):
         SsimDifference()(small, small, np.zeros((0, 8, 30, 3), np.float32), np.zeros(0, np.uint8))
+
+
+@pytest.mark.parametrize("frame", FRAMES)
+def test_shifted_ssim_is_the_best_ssim_over_shifted_reconstructions_away_from_the_edges(frame):
+    target, recon, preds, valid = frame
+    h, w = target.shape[:2]
+    r = ShiftedSsimDifference.shift
+    padded = np.pad(recon, ((r, r), (r, r), (0, 0)), mode="edge")
+    shifted = [padded[dy : dy + h, dx : dx + w] for dy in range(2 * r + 1) for dx in range(2 * r + 1)]
+    reference = np.min([SsimDifference()(target, np.ascontiguousarray(s), preds, valid) for s in shifted], axis=0)
+    got = ShiftedSsimDifference()(target, recon, preds, valid)
+    assert got.dtype == np.float32 and got.shape == (h, w)
+    inner = np.s_[r + 5 : h - r - 5, r + 5 : w - r - 5]  # the 11-tap window reads no repeated edge
+    np.testing.assert_allclose(got[inner], reference[inner], atol=1e-5)
+    assert (got <= SsimDifference()(target, recon, preds, valid) + 1e-6).all()
+
+
+def test_shifted_ssim_forgives_a_reconstruction_drawn_a_pixel_off_but_not_a_missing_object():
+    target, recon, preds, valid = synthetic_frame()
+    drawn_off = np.roll(target, (1, -2), axis=(0, 1))
+    drawn_off[16:24, 21:32] = recon[16:24, 21:32]  # the square 'object' (rows 16-24, cols 21-32) is not drawn
+    inner = np.s_[8:-8, 8:-8]
+    plain = SsimDifference()(target, drawn_off, preds, valid)[inner]
+    shifted = ShiftedSsimDifference()(target, drawn_off, preds, valid)[inner]
+    on_object = np.zeros(target.shape[:2], bool)
+    on_object[16:24, 21:32] = True
+    on_object = on_object[inner]
+    assert shifted[~on_object].mean() < 0.2 * plain[~on_object].mean()
+    contrast = {
+        name: m[on_object].mean() / m[~on_object].mean() for name, m in (("plain", plain), ("shifted", shifted))
+    }
+    assert contrast["shifted"] > 3 * contrast["plain"]  # 21x against 4.6x
 
 
 def test_temporal_uses_only_valid_predictions():
@@ -430,7 +463,7 @@ def test_calibrate_uses_heldout_normal_drives_and_never_reads_labels(tmp_path, f
     )  # fmt: skip
     assert calibrate.run(args) == 0
     calibration = load_calibration(out)
-    assert sorted(calibration.scales) == ["abs", "mse", "perceptual", "ssim", "temporal"]
+    assert sorted(calibration.scales) == ["abs", "mse", "perceptual", "ssim", "ssim_shift", "temporal"]
     assert calibration.info["drives"] == ["Scenario_b"] and calibration.info["frames"] == 4
     assert calibration.info["stride"] == 2  # the model steps on seq 0 and 2; only seq 2 has a prediction
     assert calibration.stats["abs"]["frames"] == 4 and calibration.stats["temporal"]["frames"] == 1

@@ -12,7 +12,7 @@ import pytest
 from mcap.writer import CompressionType, Writer
 from sklearn.metrics import average_precision_score, roc_auc_score
 
-from replay.sweep import Config, MaskSet, paper_weight_rows, sweep_log, weight_rows
+from replay.sweep import REFINE_MODES, Config, MaskSet, paper_weight_rows, sweep_log, weight_rows
 from umad_common.cli import build_parser
 from umad_common.cli import main as umad_main
 from umad_common.commands.evaluate import every_and_layout
@@ -23,7 +23,14 @@ from umad_common.refine import refine
 from umad_common.viz.report import write_report
 
 H, W, h, w = 16, 24, 8, 12  # camera / truth size, model size
-METRIC_OPS = {"diff_abs": "abs", "diff_mse": "mse", "diff_ssim": "ssim", "diff_pd": "perceptual", "diff_td": "td"}
+METRIC_OPS = {
+    "diff_abs": "abs",
+    "diff_mse": "mse",
+    "diff_ssim": "ssim",
+    "diff_pd": "perceptual",
+    "diff_td": "td",
+    "diff_ssim_shift": "ssim_shift",
+}
 
 
 def synthetic_frames(runs=("Scenario_a", "Scenario_b"), n=6, seed=0):
@@ -225,8 +232,19 @@ def test_weight_rows_are_the_papers_in_its_order_then_ours():
         ("ssim", "perceptual", "temporal"),
         ("abs", "ssim", "temporal"),
     }
-    assert all(row.normalization == "minmax" for row in rows[:17])
-    assert [(row.weights, row.normalization) for row in rows[17:]] == [(row.weights, "robust") for row in rows[:17]]
+    with_ssim = [row for row in rows[:17] if "ssim" in row.weights]
+    assert len(with_ssim) == 11 and all(row.extra for row in rows[17:28])
+    assert [list(row.weights.items()) for row in rows[17:28]] == [
+        [("ssim_shift" if m == "ssim" else m, w) for m, w in row.weights.items()] for row in with_ssim
+    ]
+    assert all(row.normalization == "minmax" for row in rows[:28])
+    assert [(row.weights, row.normalization) for row in rows[28:]] == [(row.weights, "robust") for row in rows[:28]]
+    assert [row.modes for row in (rows[0], rows[16], rows[17], rows[28])] == [
+        REFINE_MODES,
+        REFINE_MODES,
+        ("mean",),
+        ("mean",),
+    ]
 
 
 def single_mask(fused, mask):
@@ -245,7 +263,7 @@ def test_rows_and_settings(result):
         "no mask",
         "felzenszwalb single",
     ]
-    assert len(result.metrics) == 17 * 9 + 17 * 3 and not result.skipped_rows  # robust rows: no mask, mean
+    assert len(result.metrics) == 17 * 9 + (11 + 28) * 3 and not result.skipped_rows  # rows of ours: no mask, mean
     assert result.stats.frames == 12 and result.stats.duplicates == 2 and result.stats.bad == 6
     assert result.stats.truncated is None
     assert set(result.frames.values()) == {12}
@@ -269,12 +287,26 @@ def test_numbers_equal_direct_computation(result, log_and_truth, row):
     assert got["AP"] == pytest.approx(ap, abs=1e-12)
 
 
-@pytest.mark.parametrize("row", [0, 14, 16])
+@pytest.mark.parametrize("row", [17, 27])
+def test_stand_in_rows_fuse_the_shift_tolerant_ssim_in_the_place_of_ssim(result, log_and_truth, row):
+    truths = log_and_truth[1]
+    weights = weight_rows()[row].weights
+    assert "ssim_shift" in weights and "ssim" not in weights
+    assert Config(row, "seg_felz", "max") not in result.metrics
+    got = result.metrics[Config(row, None, "none")].compute()
+    ap, auroc = direct(truths, lambda t: weighted(t, weights))
+    assert got["AP"] == pytest.approx(ap, abs=1e-12) and got["AUROC"] == pytest.approx(auroc, abs=1e-12)
+    got = result.metrics[Config(row, "seg_felz", "mean")].compute()
+    ap, _ = direct(truths, lambda t: refined_mean(weighted(t, weights), t["tiles"]))
+    assert got["AP"] == pytest.approx(ap, abs=1e-12)
+
+
+@pytest.mark.parametrize("row", [0, 14, 16, 17])
 def test_robust_rows_fuse_robust_normalised_maps(result, log_and_truth, row):
-    """Row 17 + i is row i on robust-normalised maps (docs/design.md), scored without masks and with
+    """Row 28 + i is row i on robust-normalised maps (docs/design.md), scored without masks and with
     `mean` refinement only, labelled as ours."""
     truths = log_and_truth[1]
-    robust_row = 17 + row
+    robust_row = 28 + row
     rows = weight_rows()
     assert rows[robust_row].weights == rows[row].weights and rows[robust_row].extra
     assert result.row_label(robust_row) == f"{result.row_label(row)}, robust"
@@ -333,7 +365,15 @@ def test_diagnosis_equals_direct_computation(result, log_and_truth):
     assert diagnosis["location"]["overall"]["abs"] == pytest.approx({k: v / 12 for k, v in counts.items()})
     assert diagnosis["location"]["overall"]["ssim"] == {11: 1.0}  # the top 1 % all on the sky
     assert set(diagnosis["location"]) == {"overall", "Scenario_a", "Scenario_b"}
-    assert set(diagnosis["location"]["overall"]) == {"abs", "mse", "ssim", "perceptual", "temporal", "fused"}
+    assert set(diagnosis["location"]["overall"]) == {
+        "abs",
+        "mse",
+        "ssim",
+        "perceptual",
+        "temporal",
+        "ssim_shift",
+        "fused",
+    }
     assert sum(diagnosis["location"]["Scenario_a"]["fused"].values()) == pytest.approx(1.0)
     assert diagnosis["first_visible"] == {"Scenario_a": 0, "Scenario_b": 0}
     assert set(diagnosis["since_visible"]) == {"fused", "gt mean", "felzenszwalb mean"}
@@ -379,7 +419,7 @@ def test_report_files(result, log_and_truth, tmp_path):
         "anomaly",
     }
     assert diagnosis["since_visible"]["fused"]["all"][0]["frames"] == 12
-    assert len(summary["rows"]) == 17 * 9 + 17 * 3 and summary["baseline"]["name"] == "MNAD"
+    assert len(summary["rows"]) == 17 * 9 + (11 + 28) * 3 and summary["baseline"]["name"] == "MNAD"
     assert "MNAD" in summary["components"] and (out / "components.md").is_file()
     assert {"weights", "masks", "AP", "FPR95", "AUROC", "extra"} <= set(summary["rows"][0])
     extra = {(r["weights_label"], r["masks"]) for r in summary["rows"] if r["extra"]}
@@ -387,7 +427,7 @@ def test_report_files(result, log_and_truth, tmp_path):
     assert ("abs", "gt max") in extra and ("abs", "felzenszwalb max") not in extra
     assert ("all (1/5), robust", "felzenszwalb mean") in extra and ("all (1/5), robust", "no mask") in extra
     table = (out / "table.md").read_text()
-    assert table.count("\n| ") == 17 * 9 + 17 * 3 + 1 and "**" in table
+    assert table.count("\n| ") == 17 * 9 + (11 + 28) * 3 + 1 and "**" in table
     best_ap = max(r["AP"] for r in summary["rows"] + [summary["baseline"]])
     assert f"**{100 * best_ap:.2f}**" in table
     scenarios = (out / "per_scenario.md").read_text()
@@ -459,10 +499,10 @@ def test_paper_layout_table(result, tmp_path):
     assert header.index("gt mean AP") < header.index("felzenszwalb mean AP") < header.index("felzenszwalb max AP")
     assert header.index("felzenszwalb max AP") < header.index("no mask AP") < header.index("felzenszwalb single AP")
     rows = [line for line in lines[2:] if line.startswith("| ")]
-    assert len(rows) == 34 and rows[0].startswith("| 1 |  |  |  |  | paper |")
-    assert all("| extra |" in row for row in rows[15:17])
-    assert all("| extra, robust |" in row for row in rows[17:]) and rows[17].startswith(
-        "| 1 |  |  |  |  | extra, robust |"
+    assert len(rows) == 56 and rows[0].startswith("| 1 |  |  |  |  |  | paper |")
+    assert all("| extra |" in row for row in rows[15:28]) and rows[17].startswith("|  |  |  |  |  | 1 | extra |")
+    assert all("| extra, robust |" in row for row in rows[28:]) and rows[28].startswith(
+        "| 1 |  |  |  |  |  | extra, robust |"
     )
 
 

@@ -18,6 +18,7 @@ from umad_common.differences.metrics import (
     DifferenceMetric,
     MetricOptions,
     MseDifference,
+    ShiftedSsimDifference,
     SsimDifference,
     TemporalDifference,
     validate_frame,
@@ -36,6 +37,7 @@ METRICS: dict[str, type[DifferenceMetric] | str] = {
     "abs": AbsDifference,
     "mse": MseDifference,
     "ssim": SsimDifference,
+    "ssim_shift": ShiftedSsimDifference,  # ours, not the paper's
     "perceptual": "umad_common.differences.perceptual:PerceptualDifference",  # torch: imported on use
     "temporal": TemporalDifference,
 }
@@ -65,6 +67,7 @@ __all__ = [
     "DifferenceMetric",
     "MetricOptions",
     "MseDifference",
+    "ShiftedSsimDifference",
     "SsimDifference",
     "TemporalDifference",
     "UnknownMetricError",

@@ -178,6 +178,43 @@ class SsimDifference(DifferenceMetric):
         return 1.0 - self.ssim_map(target, recon)
 
 
+class ShiftedSsimDifference(SsimDifference):
+    """Δ_SSIM_shift (ours, not the paper's) = 1 - the largest SSIM between the camera's window at a
+    pixel and the reconstruction's windows centred up to `shift` pixels from it, each way.
+
+    A world model at 128 x 192 draws far structure (facade edges, poles, lane marks) a pixel or two
+    off; plain SSIM scores every such edge, and at the horizon those edges outrank a small obstacle.
+    Here a window the reconstruction holds nearby is not a disagreement, while an object the
+    reconstruction lacks stays one. The camera's moments and the reconstruction's are filtered once;
+    only the cross moment is filtered again per offset (the reconstruction's moments at an offset
+    are its moments read there, edges repeated), so shift 2 costs about 6 SSIMs.
+    """
+
+    name = "ssim_shift"
+    shift: ClassVar[int] = 2  # chosen on validation seed 2 and the validation stress set (docs/experiments.md)
+
+    def ssim_map(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        r = self.shift
+        x = a.transpose(2, 0, 1).astype(np.float64)  # (3, h, w)
+        y = b.transpose(2, 0, 1).astype(np.float64)
+        h, w = x.shape[1:]
+        ux, uxx, uy, uyy = np.split(self._blur(np.concatenate([x, x * x, y, y * y])), 4)
+        vx = uxx - ux * ux
+        edges = ((0, 0), (r, r), (r, r))
+        y_pad, uy_pad, uyy_pad = (np.pad(v, edges, mode="edge") for v in (y, uy, uyy))
+        offsets = [(dy, dx) for dy in range(2 * r + 1) for dx in range(2 * r + 1)]
+        at = [np.s_[:, dy : dy + h, dx : dx + w] for dy, dx in offsets]
+        uxy_all = self._blur(np.concatenate([x * y_pad[window] for window in at]))
+        best = np.full((h, w), -np.inf)
+        for k, window in enumerate(at):
+            uy_k = uy_pad[window]
+            vy, vxy = uyy_pad[window] - uy_k * uy_k, uxy_all[3 * k : 3 * k + 3] - ux * uy_k
+            num = (2 * ux * uy_k + self.c1) * (2 * vxy + self.c2)
+            den = (ux * ux + uy_k * uy_k + self.c1) * (vx + vy + self.c2)
+            np.maximum(best, (num / den).mean(axis=0), out=best)
+        return best.astype(np.float32)
+
+
 class TemporalDifference(DifferenceMetric):
     """Δ_TD = mean over the available past predictions i of Δ_ABS(x̂_{t|t-i}, x̂_t).
 

@@ -30,8 +30,15 @@ from umad_common.viz.plots import plot_curves, plot_overlay_grid
 if TYPE_CHECKING:
     from replay.sweep import SweepResult
 
-METRIC_COLUMNS = {"abs": "ABS", "mse": "MSE", "ssim": "SSIM", "perceptual": "PD", "temporal": "TD"}
-PAPER_METRICS = tuple(METRIC_COLUMNS)
+METRIC_COLUMNS = {  # a weight row's metric -> its column: the paper's five, then ours
+    "abs": "ABS",
+    "mse": "MSE",
+    "ssim": "SSIM",
+    "perceptual": "PD",
+    "temporal": "TD",
+    "ssim_shift": "SSIM±2",
+}
+METRICS = tuple(METRIC_COLUMNS)
 Layout = Literal["long", "paper"]
 LAYOUTS = ("long", "paper")
 
@@ -102,7 +109,7 @@ def rank_marks(rows: list[dict[str, Any]], keys: tuple[tuple[str, bool], ...] = 
 
 
 def _fractions(weights: dict[str, float]) -> list[str]:
-    return [str(Fraction(weights[m]).limit_denominator(10)) if m in weights else "" for m in PAPER_METRICS]
+    return [str(Fraction(weights[m]).limit_denominator(10)) if m in weights else "" for m in METRICS]
 
 
 def _normalization_note(row: dict[str, Any]) -> str:
@@ -122,7 +129,7 @@ def ablation_table(rows: list[dict[str, Any]], baseline: dict[str, Any] | None) 
     header = [*METRIC_COLUMNS.values(), "Masks", "AP ↑", "FPR95 ↓", "AUROC ↑", "frames", "in paper"]
     lines = []
     for row, mark in zip(everything, marks, strict=True):
-        weights = _fractions(row["weights"]) if "weights" in row else ["MNAD baseline", "", "", "", ""]
+        weights = _fractions(row["weights"]) if "weights" in row else ["MNAD baseline"] + [""] * (len(METRICS) - 1)
         in_paper = ("extra" if row.get("extra") else "yes") + _normalization_note(row)
         lines.append(
             [
@@ -188,14 +195,14 @@ def write_ablation_csv(rows: list[dict[str, Any]], baseline: dict[str, Any] | No
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(
-            ["method", *PAPER_METRICS, "masks", "AP", "FPR95", "AUROC", "AP_mark", "FPR95_mark", "AUROC_mark"]
+            ["method", *METRICS, "masks", "AP", "FPR95", "AUROC", "AP_mark", "FPR95_mark", "AUROC_mark"]
             + ["frames", "extra"]
         )
         for row, mark in zip(everything, marks, strict=True):
             writer.writerow(
                 [
                     "UMAD" if "weights" in row else row["name"],
-                    *(_fractions(row["weights"]) if "weights" in row else [""] * 5),
+                    *(_fractions(row["weights"]) if "weights" in row else [""] * len(METRICS)),
                     row["masks"],
                     *("" if row[k] is None else f"{row[k]:.6f}" for k, _ in SCORES),
                     *(mark[k] for k, _ in SCORES),
