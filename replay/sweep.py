@@ -5,7 +5,9 @@ segmenter, the MNAD map, regrouped by `(run, seq)`). Each configuration fuses an
 and `refine`, so a sweep row equals the live pipeline's numbers) and streams its pixels into its own
 `PixelMetrics`: memory is one 1 MiB histogram per configuration plus a few frames in flight. With
 `components`, a second read of the log adds SegmentMeIfYouCan component metrics for the headline
-configurations at their best pixel-F1 thresholds. The same pass feeds the report's diagnosis
+configurations at their best pixel-F1 thresholds, and per scenario the figures of the best row under
+each headline mask setting (the first pass follows only the default row per scenario). The first
+pass also feeds the report's diagnosis
 (`umad_common.metrics.diagnosis`): where each map's top 1 % of pixels lies by semantic class, and the
 anomaly's frame-relative score against frames since it first became visible.
 
@@ -462,16 +464,37 @@ def weights_label(weights: dict[str, Fraction]) -> str:
     return "+".join(names) + f" {share}"
 
 
-def component_pass(
+def best_configs(result: SweepResult) -> dict[str, Config]:
+    """The best-AP configuration under each of the headline's refined and no-mask settings (GT,
+    unsupervised and SAM masks with `mean`, no mask), as `best <setting>: <weight row>`."""
+    chosen: dict[str, Config] = {}
+    for setting in result.paper_settings():
+        if setting.column not in ("gt", "unsupervised", "sam", "none"):
+            continue
+        scored = [
+            c
+            for c, m in result.metrics.items()
+            if result.setting_label(c) == setting.label and m.n_anomaly and m.n_normal
+        ]
+        if scored:
+            best = max(scored, key=lambda c: (result.metrics[c].compute()["AP"], -c.row))
+            chosen[f"best {setting.label}: {result.row_label(best.row)}"] = best
+    return chosen
+
+
+def second_pass(
     path: str | Path, result: SweepResult, lag: int = 32, every: int = 1, progress: bool = True
 ) -> dict[str, dict]:
-    """SegmentMeIfYouCan component metrics (a second read of the log) for `component_configs` and
-    MNAD, each at its best pixel-F1 threshold from the first pass."""
+    """A second read of the log, once the first has ranked every configuration: SegmentMeIfYouCan
+    component metrics for `component_configs` and MNAD, each at its best pixel-F1 threshold from the
+    first pass (returned), and per scenario the figures of `best_configs` (added to
+    `result.per_scenario`: the first pass follows only the default row there)."""
     configs = component_configs(result)
+    best = best_configs(result)
     metrics = {name: ComponentMetrics(result.metrics[c].best_f1_threshold()) for name, c in configs.items()}
     if result.baseline is not None and result.baseline.n_anomaly:
         metrics["MNAD"] = ComponentMetrics(result.baseline.best_f1_threshold())
-    for frame in tqdm(frames_from_log(path, LogStats(), lag), desc="components", unit="frame", disable=not progress):
+    for frame in tqdm(frames_from_log(path, LogStats(), lag), desc="second pass", unit="frame", disable=not progress):
         if frame.truth is None or frame.seq % every:
             continue
         if frame.mnad is not None and "MNAD" in metrics:
@@ -479,10 +502,16 @@ def component_pass(
         if not frame.diffs:
             continue
         shape, labels, masks = model_size_inputs(frame)
+        score_maps: dict[Config, np.ndarray | None] = {}
+        for config in {*configs.values(), *best.values()}:
+            score_maps[config] = configuration_map(frame, result.rows[config.row], config, shape, masks)
         for name, config in configs.items():
-            score_map = configuration_map(frame, result.rows[config.row], config, shape, masks)
-            if score_map is not None:
-                metrics[name].update(score_map, labels)
+            if score_maps[config] is not None:
+                metrics[name].update(score_maps[config], labels)
+        for name, config in best.items():
+            if score_maps[config] is not None:
+                per_run = result.per_scenario.setdefault(frame.run, {})
+                per_run.setdefault(name, PixelMetrics()).update(score_maps[config], labels)
     return {name: m.compute() for name, m in metrics.items()}
 
 
@@ -496,7 +525,8 @@ def sweep_log(
     allow_incomplete: bool = False,
 ) -> SweepResult:
     """Compute every configuration's AP/FPR95/AUROC from one log (see the module docstring); with
-    `components`, a second read adds component metrics for the headline configurations.
+    `components`, a second read adds component metrics for the headline configurations and the
+    per-scenario figures of the best row under each headline mask setting (`second_pass`).
 
     A log whose recorder says it lacks messages is refused (LogError naming the channels and
     counts): its table would score other frames than the run's. `allow_incomplete` reports on it
@@ -522,6 +552,6 @@ def sweep_log(
     if incomplete:
         result.protocol["incomplete"] = incomplete
     if components:
-        result.components = component_pass(path, result, lag, every, progress)
+        result.components = second_pass(path, result, lag, every, progress)
     result.seconds = time.perf_counter() - start
     return result

@@ -24,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--no-components",
         action="store_true",
-        help="skip the second read of the log (SegmentMeIfYouCan component metrics)",
+        help="skip the second read of the log (SegmentMeIfYouCan component metrics, per-scenario figures of the best rows)",
     )
     parser.add_argument(
         "--layout",
