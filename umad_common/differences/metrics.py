@@ -188,7 +188,8 @@ class ShiftedSsimDifference(SsimDifference):
     reconstruction lacks stays one. Beyond the image both are mirrored as in SSIM (so offset 0 is
     SSIM itself and the map never exceeds Δ_SSIM), and every moment of a window pair is taken over
     the same extended pixels, so each SSIM stays in [-1, 1]. The moments of each image are filtered once;
-    only the cross moment is filtered again per offset: shift 2 (25 offsets) costs about 6 SSIMs.
+    only the cross moment is filtered again per offset: shift 2 (25 offsets) costs about 10 SSIMs
+    (`umad bench differences`: 46 against 4.4 ms per 128 x 192 frame).
     """
 
     name = "ssim_shift"
