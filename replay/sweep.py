@@ -103,7 +103,7 @@ def normalised_maps(diffs: dict[str, np.ndarray], normalization: str) -> dict[st
 class MaskSet:
     """`refine(fused, masks, mode, uncovered="keep")` for many fused maps over the same masks.
 
-    The sweep refines 34 fused maps per frame with the same masks; converting the masks once per
+    The sweep refines 56 fused maps per frame with the same masks; converting the masks once per
     frame instead of once per call makes it several times faster. The results are bit-identical to
     `umad_common.refine.refine` (tests/test_sweep.py checks it): `mean` scores use the same float64
     product in the same chunks unless every mask's sum is exact in float64 (then any order gives
