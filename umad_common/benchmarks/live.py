@@ -36,6 +36,7 @@ import os
 import tempfile
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -168,18 +169,19 @@ def bench_live(
 def frame_counts(arrivals: Arrivals, sent: int, primed: int) -> dict:
     """Results kept, partial, failed and dropped, and frames/s kept over the wall time of the frames
     sent at the camera's rate: all but the first `primed` (one drive, so its seq counts from 0)."""
-    metas = arrivals.result_meta
-    failed = sum(1 for meta in metas.values() if meta.get("error"))
-    superseded = sum(1 for meta in metas.values() if meta.get("superseded"))
-    partial = sum(1 for meta in metas.values() if meta.get("partial"))  # markers carry no `partial`
-    complete = [key for key, meta in metas.items() if not any(meta.get(k) for k in ("error", "superseded", "partial"))]
-    dropped = max(0, sent - len(metas)) + superseded
+    outcome = {  # markers carry no `partial`
+        key: next((flag for flag in ("error", "superseded", "partial") if meta.get(flag)), "kept")
+        for key, meta in arrivals.result_meta.items()
+    }
+    count = Counter(outcome.values())
+    failed, superseded, partial = count["error"], count["superseded"], count["partial"]
+    dropped = max(0, sent - len(outcome)) + superseded
     cameras = [t for (_, seq), t in arrivals.times["camera"].items() if seq >= primed]
     results = [t for (_, seq), t in arrivals.times["result"].items() if seq >= primed]
     stream_s = max(results) - min(cameras) if cameras and results else 0.0
-    kept_at_rate = sum(1 for _, seq in complete if seq >= primed)
+    kept_at_rate = sum(1 for (_, seq), kind in outcome.items() if kind == "kept" and seq >= primed)
     return {
-        "frames_kept": len(complete),
+        "frames_kept": count["kept"],
         "frames_partial": partial,
         "frames_failed": failed,
         "frames_dropped": dropped,

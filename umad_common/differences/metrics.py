@@ -166,10 +166,13 @@ class SsimDifference(DifferenceMetric):
         x = a.transpose(2, 0, 1).astype(np.float64)  # (3, h, w)
         y = b.transpose(2, 0, 1).astype(np.float64)
         ux, uy, uxx, uyy, uxy = np.split(self._blur(np.concatenate([x, y, x * x, y * y, x * y])), 5)
-        vx, vy, vxy = uxx - ux * ux, uyy - uy * uy, uxy - ux * uy
+        return self._similarity(ux, uy, uxx - ux * ux, uyy - uy * uy, uxy - ux * uy).astype(np.float32)
+
+    def _similarity(self, ux, uy, vx, vy, vxy) -> np.ndarray:
+        """SSIM from the windows' means, variances and covariance, (3, h, w) each; channel mean (h, w)."""
         num = (2 * ux * uy + self.c1) * (2 * vxy + self.c2)
         den = (ux * ux + uy * uy + self.c1) * (vx + vy + self.c2)
-        return (num / den).mean(axis=0).astype(np.float32)
+        return (num / den).mean(axis=0)
 
     def compute(self, target, recon, preds, pred_valid):
         h, w = target.shape[:2]
@@ -216,10 +219,8 @@ class ShiftedSsimDifference(SsimDifference):
         best = np.full((h, w), -np.inf)
         for k, (dy, dx) in enumerate(offsets):
             uy_k, uyy_k = uy[:, dy : dy + h, dx : dx + w], uyy[:, dy : dy + h, dx : dx + w]
-            vy, vxy = uyy_k - uy_k * uy_k, uxy[3 * k : 3 * k + 3] - ux * uy_k
-            num = (2 * ux * uy_k + self.c1) * (2 * vxy + self.c2)
-            den = (ux * ux + uy_k * uy_k + self.c1) * (vx + vy + self.c2)
-            np.maximum(best, (num / den).mean(axis=0), out=best)
+            similarity = self._similarity(ux, uy_k, vx, uyy_k - uy_k * uy_k, uxy[3 * k : 3 * k + 3] - ux * uy_k)
+            np.maximum(best, similarity, out=best)
         return best.astype(np.float32)
 
 

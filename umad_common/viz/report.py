@@ -233,8 +233,9 @@ def scenario_table(result: SweepResult, csv_path: Path) -> Table:
     row under each headline mask setting (`best <setting>: <row>`, from the sweep's second pass) and
     MNAD, with the AnoVox categories found under the scenario's anomaly pixels; also written as CSV."""
     present = list(dict.fromkeys(label for per_run in result.per_scenario.values() for label in per_run))
-    best = [label for label in present if label.startswith("best ")]
-    settings = [label for label in [*result.setting_labels(), *best, "MNAD"] if label in present]
+    default_row = [label for label in result.setting_labels() if label in present]
+    best_rows = [label for label in present if label not in default_row and label != "MNAD"]
+    settings = default_row + best_rows + (["MNAD"] if "MNAD" in present else [])
     lines = []
     with open(csv_path, "w", newline="") as f:
         writer = csv.writer(f)
