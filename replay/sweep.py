@@ -15,9 +15,9 @@ Rows and settings: the paper's 15 weight rows in its order, then ours (`WeightRo
 groups; every group with SSIM again with the shift-tolerant SSIM (`ssim_shift`) in its place; then
 every group again on `robust`-normalised maps (`umad_common.differences.robust` of the logged
 min-max maps, equal to robust normalisation of the raw maps). Rows of the paper's maps at min-max
-are scored per segmenter with the refinements mean, max, single (the paper's) and single_keep_raw
-(ours), plus no mask; the others with `mean` refinement and no mask only. A row whose map the log
-lacks (a graph without `diff_ssim_shift`) is skipped.
+are scored per segmenter with the refinements mean, max, single (the paper's), single_keep_raw and
+mean_pixel (ours), plus no mask; the others with `mean` and `mean_pixel` refinement and no mask
+only. A row whose map the log lacks (a graph without `diff_ssim_shift`) is skipped.
 The log's metadata gives the protocol (`replay.protocol`): data, models, the PD network.
 """
 
@@ -39,10 +39,18 @@ from umad_common.differences.normalization import robust
 from umad_common.metrics.components import ComponentMetrics
 from umad_common.metrics.diagnosis import Diagnosis
 from umad_common.metrics.pixel import LabelledPixels, PixelMetrics
-from umad_common.refine import MAX_CHUNK_ELEMENTS, fuse, only_the_best, refine, resize_nearest
+from umad_common.refine import (
+    MAX_CHUNK_ELEMENTS,
+    PIXEL_SHARE,
+    fuse,
+    only_the_best,
+    refine,
+    resize_nearest,
+    with_pixel_share,
+)
 
 PAPER_METRICS = ("abs", "mse", "ssim", "perceptual", "temporal")
-REFINE_MODES = ("mean", "max", "single", "single_keep_raw")  # single_keep_raw is ours, not the paper's
+REFINE_MODES = ("mean", "max", "single", "single_keep_raw", "mean_pixel")  # the last two are ours, not the paper's
 PAPER_TRIPLES = (  # the paper's 1/3 rows, none with TD, in its order
     ("mse", "ssim", "perceptual"),
     ("abs", "ssim", "perceptual"),
@@ -66,9 +74,9 @@ class WeightRow:
 
     @property
     def modes(self) -> tuple[str, ...]:
-        """The refinements scored for this row: all of them on the paper's maps, `mean` on ours."""
+        """The refinements scored for this row: all of them on the paper's maps, `mean` and `mean_pixel` on ours."""
         paper_maps = self.normalization == "minmax" and set(self.weights) <= set(PAPER_METRICS)
-        return REFINE_MODES if paper_maps else ("mean",)
+        return REFINE_MODES if paper_maps else ("mean", "mean_pixel")
 
 
 def paper_weight_rows() -> list[WeightRow]:
@@ -118,6 +126,7 @@ class MaskSet:
         self.dense = flat.astype(np.float64)  # (K, N), the operand refine's `mean` builds on every call
         self.chunk = max(1, MAX_CHUNK_ELEMENTS // max(1, flat.shape[1]))
         self.owners, self.pixels = np.nonzero(flat)  # (mask, pixel) pairs: pixels of mask 0, then mask 1, ...
+        self.covered = flat.any(axis=0).reshape(masks.shape[1:])
         self.nonempty = np.flatnonzero(self.areas > 0)
         self.starts = np.searchsorted(self.owners, self.nonempty)
 
@@ -176,15 +185,17 @@ class MaskSet:
         fused = np.asarray(fused, dtype=np.float32)
         lowest = np.full_like(fused, fused.min())
         if self.masks.shape[0] == 0:
-            empty = {"mean": fused, "max": fused, "single": lowest, "single_keep_raw": fused}
+            empty = {"mean": fused, "max": fused, "single": lowest, "single_keep_raw": fused, "mean_pixel": fused}
             return {mode: empty[mode].copy() for mode in modes}
         mean = self.mean_scores(fused)
         single = only_the_best(mean) if {"single", "single_keep_raw"} & set(modes) else mean
+        mean_map = self.paint(mean, fused) if {"mean", "mean_pixel"} & set(modes) else None
         paint = {
-            "mean": lambda: self.paint(mean, fused),
+            "mean": lambda: mean_map,
             "max": lambda: self.paint(self.max_scores(fused), fused),
             "single": lambda: self.paint(single, lowest),
             "single_keep_raw": lambda: self.paint(single, fused),
+            "mean_pixel": lambda: with_pixel_share(mean_map, fused, self.covered, PIXEL_SHARE),
         }
         return {mode: paint[mode]() for mode in modes}
 
@@ -210,10 +221,10 @@ class OverlayFrame:
 
 @dataclass(frozen=True)
 class PaperSetting:
-    """One mask setting of the paper's table, as this run names it."""
+    """One mask setting of the headline, as this run names it: the paper's, or ours after them."""
 
     label: str  # the setting's label in every table, e.g. "felzenszwalb mean"
-    column: str  # the paper's column: gt, unsupervised, sam, max, none or single
+    column: str  # the paper's column (gt, unsupervised, sam, max, none or single) or ours (unsupervised_pixel)
 
 
 @dataclass
@@ -267,6 +278,13 @@ class SweepResult:
             PaperSetting("no mask", "none"),
             PaperSetting(f"{main} single", "single"),
         ]
+
+    def headline_settings(self) -> list[PaperSetting]:
+        """The paper's mask settings, then ours: the first unsupervised segmenter with `mean_pixel`."""
+        ops = self._ops_in_order()
+        unsupervised = [self.segmenters[op] for op in ops if self.segmenters[op] not in ("gt", "sam")]
+        ours = [PaperSetting(f"{unsupervised[0]} mean_pixel", "unsupervised_pixel")] if unsupervised else []
+        return self.paper_settings() + ours
 
     def setting_labels(self) -> list[str]:
         """Every mask setting's label in table order: the paper's, then ours (every other segmenter x mode)."""
@@ -466,10 +484,11 @@ def weights_label(weights: dict[str, Fraction]) -> str:
 
 def best_configs(result: SweepResult) -> dict[str, Config]:
     """The best-AP configuration under each of the headline's refined and no-mask settings (GT,
-    unsupervised and SAM masks with `mean`, no mask), as `best <setting>: <weight row>`."""
+    unsupervised and SAM masks with `mean`, unsupervised with `mean_pixel`, no mask), as
+    `best <setting>: <weight row>`."""
     chosen: dict[str, Config] = {}
-    for setting in result.paper_settings():
-        if setting.column not in ("gt", "unsupervised", "sam", "none"):
+    for setting in result.headline_settings():
+        if setting.column not in ("gt", "unsupervised", "sam", "none", "unsupervised_pixel"):
             continue
         scored = [
             c

@@ -61,6 +61,31 @@ def test_single_keep_raw_keeps_the_best_mask_and_the_uncovered_rule_elsewhere():
     np.testing.assert_allclose(kept, [[0.5, 0.5, 0.4, 0.6], [0.5, 0.5, 0.1, 0.3]], rtol=1e-6)
 
 
+def test_mean_pixel_keeps_a_share_of_each_covered_pixels_own_score():
+    """LEFT's mean 0.5 with a quarter of each pixel's own score; the uncovered rule holds elsewhere."""
+    out = refine(FUSED, masks_of(LEFT), mode="mean_pixel", uncovered="zero", pixel_share=0.25)
+    expected = [[0.375, 0.425, 0.0, 0.0], [0.575, 0.625, 0.0, 0.0]]
+    np.testing.assert_allclose(out, expected, rtol=1e-6)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(
+        refine(FUSED, masks_of(LEFT, RIGHT), mode="mean_pixel", pixel_share=0.0),
+        refine(FUSED, masks_of(LEFT, RIGHT), mode="mean"),
+    )
+    np.testing.assert_allclose(refine(FUSED, masks_of(LEFT), mode="mean_pixel", pixel_share=1.0), FUSED, rtol=1e-6)
+
+
+def test_mean_pixel_keeps_a_small_object_inside_a_large_mask_above_its_surroundings():
+    """A 2-pixel object in a 400-pixel segment: `mean` gives every pixel the segment's score, so the
+    object ties with its background; `mean_pixel` ranks it first within the segment."""
+    fused = np.full((20, 20), 0.1, dtype=np.float32)
+    fused[5, 5:7] = 0.9
+    segment = np.ones((1, 20, 20), dtype=bool)
+    mean = refine(fused, segment, mode="mean")
+    assert mean[5, 5] == mean[0, 0]
+    mixed = refine(fused, segment, mode="mean_pixel")
+    assert mixed[5, 5] > mixed[0, 0] and mixed[5, 5] == mixed[5, 6]
+
+
 def test_none_returns_the_fused_map():
     out = refine(FUSED, masks_of(LEFT), mode="none", uncovered="zero")
     np.testing.assert_array_equal(out, FUSED)
@@ -90,7 +115,7 @@ def test_no_masks_and_empty_masks_leave_every_pixel_uncovered():
         refine(FUSED, no_masks, mode="single_keep_raw", uncovered="zero"), np.zeros_like(FUSED)
     )
     empty = np.zeros((1, 2, 4), dtype=bool)
-    for mode in ("mean", "max", "single_keep_raw"):
+    for mode in ("mean", "mean_pixel", "max", "single_keep_raw"):
         np.testing.assert_array_equal(refine(FUSED, empty, mode=mode, uncovered="keep"), FUSED)
     for masks in (no_masks, empty):  # no mask survives: every pixel gets the frame's lowest score
         np.testing.assert_array_equal(refine(FUSED + 0.25, masks, mode="single"), np.full_like(FUSED, 0.25))
@@ -118,6 +143,8 @@ def test_refine_rejects_bad_arguments():
         refine(FUSED, masks_of(LEFT), mode="median")
     with pytest.raises(ValueError, match="uncovered"):
         refine(FUSED, masks_of(LEFT), uncovered="nan")
+    with pytest.raises(ValueError, match="pixel_share"):
+        refine(FUSED, masks_of(LEFT), mode="mean_pixel", pixel_share=1.5)
     with pytest.raises(ValueError, match=r"expected \(K, 2, 4\)"):
         refine(FUSED, np.zeros((1, 3, 4), dtype=bool))
 

@@ -243,8 +243,8 @@ def test_weight_rows_are_the_papers_in_its_order_then_ours():
     assert [row.modes for row in (rows[0], rows[16], rows[17], rows[28])] == [
         REFINE_MODES,
         REFINE_MODES,
-        ("mean",),
-        ("mean",),
+        ("mean", "mean_pixel"),
+        ("mean", "mean_pixel"),
     ]
 
 
@@ -264,7 +264,8 @@ def test_rows_and_settings(result):
         "no mask",
         "felzenszwalb single",
     ]
-    assert len(result.metrics) == 17 * 9 + (11 + 28) * 3 and not result.skipped_rows  # rows of ours: no mask, mean
+    assert [s.label for s in result.headline_settings()][5:] == ["felzenszwalb mean_pixel"]
+    assert len(result.metrics) == 17 * 11 + (11 + 28) * 5 and not result.skipped_rows  # ours: no mask, 2 refinements
     assert result.stats.frames == 12 and result.stats.duplicates == 2 and result.stats.bad == 6
     assert result.stats.truncated is None
     assert set(result.frames.values()) == {12}
@@ -331,7 +332,7 @@ def test_baseline_and_per_scenario(result, log_and_truth):
     assert result.baseline_frames == 12
     assert set(result.per_scenario) == {"Scenario_a", "Scenario_b"}
     best = {}  # the second pass: per scenario, the best-AP row under each headline mask setting
-    for setting in ("gt mean", "felzenszwalb mean", "no mask"):
+    for setting in ("gt mean", "felzenszwalb mean", "no mask", "felzenszwalb mean_pixel"):
         configs = [c for c in result.metrics if result.setting_label(c) == setting]
         top = max(configs, key=lambda c: (result.metrics[c].compute()["AP"], -c.row))
         best[f"best {setting}: {result.row_label(top.row)}"] = top
@@ -348,10 +349,12 @@ def test_baseline_and_per_scenario(result, log_and_truth):
         "gt max",
         "gt single",
         "gt single_keep_raw",
+        "gt mean_pixel",
         "felzenszwalb mean",
         "felzenszwalb max",
         "felzenszwalb single",
         "felzenszwalb single_keep_raw",
+        "felzenszwalb mean_pixel",
         "MNAD",
     }
     pooled = result.per_scenario["Scenario_a"]["no mask"]
@@ -432,7 +435,7 @@ def test_report_files(result, log_and_truth, tmp_path):
         "anomaly",
     }
     assert diagnosis["since_visible"]["fused"]["all"][0]["frames"] == 12
-    assert len(summary["rows"]) == 17 * 9 + (11 + 28) * 3 and summary["baseline"]["name"] == "MNAD"
+    assert len(summary["rows"]) == 17 * 11 + (11 + 28) * 5 and summary["baseline"]["name"] == "MNAD"
     assert "MNAD" in summary["components"] and (out / "components.md").is_file()
     assert {"weights", "masks", "AP", "FPR95", "AUROC", "extra"} <= set(summary["rows"][0])
     extra = {(r["weights_label"], r["masks"]) for r in summary["rows"] if r["extra"]}
@@ -440,7 +443,7 @@ def test_report_files(result, log_and_truth, tmp_path):
     assert ("abs", "gt max") in extra and ("abs", "felzenszwalb max") not in extra
     assert ("all (1/5), robust", "felzenszwalb mean") in extra and ("all (1/5), robust", "no mask") in extra
     table = (out / "table.md").read_text()
-    assert table.count("\n| ") == 17 * 9 + (11 + 28) * 3 + 1 and "**" in table
+    assert table.count("\n| ") == 17 * 11 + (11 + 28) * 5 + 1 and "**" in table
     best_ap = max(r["AP"] for r in summary["rows"] + [summary["baseline"]])
     assert f"**{100 * best_ap:.2f}**" in table
     scenarios = (out / "per_scenario.md").read_text()
@@ -473,7 +476,14 @@ def test_page_opens_with_the_headline_and_every_picture_exists(result, log_and_t
     out = write_report(result, tmp_path / "report", log_and_truth[0]).parent
     summary = json.loads((out / "results.json").read_text())
     headline = summary["headline"]
-    assert [s["column"] for s in headline["settings"]] == ["gt", "unsupervised", "max", "none", "single"]
+    assert [s["column"] for s in headline["settings"]] == [
+        "gt",
+        "unsupervised",
+        "max",
+        "none",
+        "single",
+        "unsupervised_pixel",
+    ]
     gt = max(r["AP"] for r in summary["rows"] if r["masks"] == "gt mean")
     unsupervised = max(r["AP"] for r in summary["rows"] if r["masks"] == "felzenszwalb mean")
     assert headline["settings"][0]["AP"] == gt
@@ -592,7 +602,7 @@ def test_mask_set_is_bit_identical_to_refine(seed):
         mask_set = MaskSet(masks)
         for score_map in (fused, coarse, tiny):
             refined = mask_set.refine_all(score_map)
-            for mode in ("mean", "max", "single", "single_keep_raw"):
+            for mode in REFINE_MODES:
                 expected = refine(score_map, masks, mode=mode, uncovered="keep")
                 assert refined[mode].dtype == expected.dtype and np.array_equal(refined[mode], expected), mode
         if mask_set.nonempty.size:

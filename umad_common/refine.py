@@ -17,6 +17,9 @@ Rules (docs/design.md, "Fusion" and "Mask-level refinement"):
   `single` (the paper's single mask) keeps only the mask with the highest mean score and gives
   every other pixel the frame's lowest fused score; `single_keep_raw` keeps that mask too but
   leaves the other pixels to the uncovered rule. `none` returns the fused map unchanged.
+  `mean_pixel` (ours) gives each covered pixel (1 - s) x its mask's mean + s x its own fused score,
+  s = `pixel_share`: a small object inside a large segment keeps part of its own evidence, and
+  within a mask the pixels keep their order.
   Pixels no (surviving) mask covers are `keep` (their fused score) or `zero`.
 """
 
@@ -28,9 +31,12 @@ from typing import Literal
 import cv2
 import numpy as np
 
-RefineMode = Literal["mean", "max", "single", "single_keep_raw", "none"]
+RefineMode = Literal["mean", "mean_pixel", "max", "single", "single_keep_raw", "none"]
 UncoveredRule = Literal["keep", "zero"]
-REFINE_MODES: tuple[str, ...] = ("mean", "max", "single", "single_keep_raw", "none")
+REFINE_MODES: tuple[str, ...] = ("mean", "mean_pixel", "max", "single", "single_keep_raw", "none")
+# mean_pixel's share of a pixel's own fused score: chosen on validation seeds 2 and 31 of the
+# built-in world, never on an evaluated set (docs/experiments.md, "Scores across frames and regions")
+PIXEL_SHARE = 0.2
 UNCOVERED_RULES: tuple[str, ...] = ("keep", "zero")
 MAX_CHUNK_ELEMENTS = 1 << 22  # bounds the (masks x pixels) float temporaries of the `max` mode
 
@@ -141,6 +147,7 @@ def refine(
     masks: np.ndarray,
     mode: RefineMode = "mean",
     uncovered: UncoveredRule = "keep",
+    pixel_share: float = PIXEL_SHARE,
 ) -> np.ndarray:
     """Mask-level refinement of a fused anomaly map.
 
@@ -151,9 +158,11 @@ def refine(
             score winning on overlaps; `single`: only the mask with the highest mean keeps its score
             (ties: the lowest index), every other pixel gets the frame's lowest fused score (the
             paper's single mask); `single_keep_raw`: the same survivor, the other pixels follow
-            `uncovered`; `none`: the fused map unchanged.
+            `uncovered`; `mean_pixel`: `mean`, then each covered pixel keeps `pixel_share` of its
+            own fused score (ours); `none`: the fused map unchanged.
         uncovered: pixels no surviving mask covers: `keep` their fused score (a missed object still
             shows its raw evidence) or `zero`. Not used by `single`.
+        pixel_share: in [0, 1], used by `mean_pixel` only.
 
     Returns:
         (h, w) float32 refined map.
@@ -165,6 +174,8 @@ def refine(
         raise ValueError(f"refine: unknown mode {mode!r}; expected one of {REFINE_MODES}")
     if uncovered not in UNCOVERED_RULES:
         raise ValueError(f"refine: unknown uncovered rule {uncovered!r}; expected one of {UNCOVERED_RULES}")
+    if not 0.0 <= pixel_share <= 1.0:
+        raise ValueError(f"refine: pixel_share {pixel_share!r}; expected a share in [0, 1]")
     fused = np.asarray(fused, dtype=np.float32)
     if fused.ndim != 2:
         raise ValueError(f"refine: fused map has shape {fused.shape}; expected (h, w)")
@@ -182,7 +193,18 @@ def refine(
     scores = mask_scores(fused, masks, "max" if mode == "max" else "mean")
     if mode in ("single", "single_keep_raw"):
         scores = only_the_best(scores)
-    return paint_masks(scores, masks, background)
+    painted = paint_masks(scores, masks, background)
+    if mode == "mean_pixel":
+        return with_pixel_share(painted, fused, masks.any(axis=0), pixel_share)
+    return painted
+
+
+def with_pixel_share(painted: np.ndarray, fused: np.ndarray, covered: np.ndarray, share: float) -> np.ndarray:
+    """`painted` with each covered pixel's score (1 - share) x itself + share x the pixel's fused
+    score (float32, the same operations wherever it runs)."""
+    out = np.array(painted, dtype=np.float32, copy=True)
+    out[covered] = np.float32(1.0 - share) * out[covered] + np.float32(share) * fused[covered]
+    return out
 
 
 def only_the_best(scores: np.ndarray) -> np.ndarray:

@@ -34,6 +34,7 @@ COLUMN_TITLES = {
     "max": "max value",
     "none": "no mask",
     "single": "single mask",
+    "unsupervised_pixel": "unsupervised masks (mean_pixel, ours)",
 }
 
 
@@ -45,7 +46,7 @@ def headline_figures(
     Args:
         rows: the ablation rows (`report.table_rows`): `weights_label`, `masks`, AP, FPR95, AUROC.
         baseline: the MNAD row or None.
-        settings: (setting label, paper column) of the paper's mask settings, in its order.
+        settings: (setting label, column) of the paper's mask settings in its order, then ours.
 
     Returns:
         {"settings": [{column, title, masks, weights_label, AP, FPR95, AUROC}], "mnad": {...} | None,
@@ -58,7 +59,7 @@ def headline_figures(
             continue
         top = max(scored, key=lambda r: r["AP"])
         title = COLUMN_TITLES[column]
-        if column in ("unsupervised", "max", "single"):
+        if column in ("unsupervised", "max", "single", "unsupervised_pixel"):
             title += f": {label.rsplit(' ', 1)[0]}"
         best.append(
             {"column": column, "title": title, "masks": label, "weights_label": top["weights_label"]}

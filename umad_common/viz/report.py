@@ -314,7 +314,7 @@ def write_report(
     rows, baseline = table_rows(result), baseline_row(result)
     paper_settings = result.paper_settings()
     paper_labels = [s.label for s in paper_settings]
-    headline = headline_figures(rows, baseline, [(s.label, s.column) for s in paper_settings])
+    headline = headline_figures(rows, baseline, [(s.label, s.column) for s in result.headline_settings()])
     protocol = run_protocol(result, layout)
     stats = result.stats
     summary = {
