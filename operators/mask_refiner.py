@@ -2,7 +2,7 @@
 
 `mean` (the paper's default) writes each mask's mean fused score to its pixels, so a whole object
 lights up instead of speckles and high-frequency normal structure is averaged down. `mean_pixel`
-(ours, the default graphs' choice) keeps a share of each pixel's own score beside its mask's mean,
+(ours, what the default graphs run on label-free masks) keeps a share of each pixel's own score beside its mask's mean,
 so a small object inside a large segment is not averaged away. The arithmetic,
 the overlap rule (the highest score wins) and the uncovered-pixel rule live in
 `umad_common.refine.refine`, shared with the offline sweep.

@@ -219,7 +219,7 @@ def _eval_graph(args: argparse.Namespace, source: Path) -> dict:
                 "id": "refine_sam",
                 "kind": "mask_refiner",
                 "inputs": {"fused": fused_src, "masks": "segment_sam/masks"},
-                "params": {"mode": "mean_pixel"},
+                "params": {"mode": "mean"},
             },
         ]
     return data
