@@ -2,9 +2,9 @@
 
 `mean` (the paper's default) writes each mask's mean fused score to its pixels, so a whole object
 lights up instead of speckles and high-frequency normal structure is averaged down. `mean_pixel`
-(ours, what the default graphs run on label-free masks) keeps a share of each pixel's own score beside its mask's mean,
-so a small object inside a large segment is not averaged away. The arithmetic,
-the overlap rule (the highest score wins) and the uncovered-pixel rule live in
+(ours, what the default graphs run on label-free masks) keeps a share of each pixel's own score
+beside its mask's mean, so a small object inside a large segment is not averaged away. The
+arithmetic, the overlap rule (the highest score wins) and the uncovered-pixel rule live in
 `umad_common.refine.refine`, shared with the offline sweep.
 """
 
@@ -74,6 +74,7 @@ class MaskRefiner(Operator):
             "mode": self.params.mode,
             "uncovered": self.params.uncovered,
             "masks": int(masks.shape[0]),
+            **({"pixel_share": self.params.pixel_share} if self.params.mode == "mean_pixel" else {}),
             "partial": bool(frame.inputs["fused"].meta.get("partial", False)),  # the fused map lacked a late map
         }
         return {"refined": Output({"map": refined}, meta)}

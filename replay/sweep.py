@@ -259,12 +259,15 @@ class SweepResult:
         rank = {"gt": 0, "sam": 2}
         return sorted(self.segmenters, key=lambda op: (rank.get(self.segmenters[op], 1), op))
 
+    def _unsupervised_ops(self) -> list[str]:
+        return [op for op in self._ops_in_order() if self.segmenters[op] not in ("gt", "sam")]
+
     def paper_settings(self) -> list[PaperSetting]:
         """The paper's mask settings in its order: each segmenter with mean refinement (GT,
         unsupervised, SAM), then max value, no mask and single mask with the first unsupervised
         segmenter's masks (ground truth's when the run had none)."""
         ops = self._ops_in_order()
-        unsupervised = [op for op in ops if self.segmenters[op] not in ("gt", "sam")]
+        unsupervised = self._unsupervised_ops()
         if not ops:
             return [PaperSetting("no mask", "none")]
         main = self.segmenters[(unsupervised or ops)[0]]
@@ -281,10 +284,9 @@ class SweepResult:
 
     def headline_settings(self) -> list[PaperSetting]:
         """The paper's mask settings, then ours: the first unsupervised segmenter with `mean_pixel`."""
-        ops = self._ops_in_order()
-        unsupervised = [self.segmenters[op] for op in ops if self.segmenters[op] not in ("gt", "sam")]
-        ours = [PaperSetting(f"{unsupervised[0]} mean_pixel", "unsupervised_pixel")] if unsupervised else []
-        return self.paper_settings() + ours
+        unsupervised = self._unsupervised_ops()
+        ours = [f"{self.segmenters[op]} mean_pixel" for op in unsupervised[:1]]
+        return self.paper_settings() + [PaperSetting(label, "unsupervised_pixel") for label in ours]
 
     def setting_labels(self) -> list[str]:
         """Every mask setting's label in table order: the paper's, then ours (every other segmenter x mode)."""

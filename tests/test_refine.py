@@ -252,5 +252,13 @@ def test_mask_refiner_operator_resizes_masks_nearest():
     expected[:2, :4] = 1.0
     np.testing.assert_array_equal(out.arrays["map"], expected)
     assert out.meta == {"mode": "mean", "uncovered": "zero", "masks": 2, "partial": False}
+    fused[0, 0] = 0.0  # the top-left mask's mean becomes 7/8
+    mixed = MaskRefiner({"mode": "mean_pixel", "pixel_share": 0.5}).process(frame)["refined"]
+    expected[:2, :4] = 0.5 * 0.875 + 0.5
+    expected[0, 0] = 0.5 * 0.875
+    np.testing.assert_allclose(mixed.arrays["map"], expected, rtol=1e-6)
+    assert mixed.meta["pixel_share"] == 0.5
     with pytest.raises(ValidationError):
         MaskRefiner({"mode": "median"})
+    with pytest.raises(ValidationError, match="pixel_share"):
+        MaskRefiner({"mode": "mean_pixel", "pixel_share": 2})
