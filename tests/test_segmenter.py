@@ -355,6 +355,49 @@ def test_an_object_region_grown_in_a_window_around_its_hits_is_the_whole_images_
         assert np.array_equal(region, whole)
 
 
+def test_snap_grows_an_object_into_pixels_of_its_colour_and_no_further():
+    from umad_common.segmentation.geometry import snap_to_colour
+
+    image = np.full((12, 12, 3), 0.4, np.float32)
+    image[3:8, 3:8] = (0.9, 0.3, 0.1)  # the object, a 5 x 5 block; its lidar region is the inner 3 x 3
+    image[0:2, 0:2] = (0.9, 0.3, 0.1)  # the same colour, out of reach
+    owner = np.full((12, 12), -1, np.int64)
+    owner[4:7, 4:7] = 0
+    owner[8, 3:8] = 1  # another object below it: never taken
+    for reach in (1, 2, 3):
+        grown = owner.copy()
+        snap_to_colour(grown, image, 2, reach)
+        expected = np.zeros((12, 12), bool)
+        expected[3:8, 3:8] = True
+        np.testing.assert_array_equal(grown == 0, expected)
+        np.testing.assert_array_equal(grown == 1, owner == 1)
+    dark = image.copy()
+    dark[3:8, 3:8] = 0.4  # the pixels around the region look like the background: nothing joins
+    dark[4:7, 4:7] = (0.9, 0.3, 0.1)
+    grown = owner.copy()
+    snap_to_colour(grown, dark, 2, 2)
+    np.testing.assert_array_equal(grown, owner)
+
+
+def test_geometry_snap_px_adds_the_objects_rim_that_its_hits_miss():
+    image = np.full((H, W, 3), 0.3, np.float32)
+    face = box_pixels()
+    image[ndimage_dilate(face)] = (0.9, 0.2, 0.1)  # the object drawn a pixel wider than the lidar sees it
+    options = {**ANOVOX_RIG, "snap_px": 1}
+    plain = Segmenter({"method": "geometry", "options": ANOVOX_RIG}).process(lidar_frame(box_on_a_plane(), image=image))
+    snapped = Segmenter({"method": "geometry", "options": options}).process(lidar_frame(box_on_a_plane(), image=image))
+    plain, snapped = plain["masks"].arrays["masks"][0], snapped["masks"].arrays["masks"][0]
+    red = ndimage_dilate(face)
+    assert (snapped & red).sum() > (plain & red).sum(), "the rim joins"
+    assert not (snapped & ~red).any(), "nothing of the background's colour joins"
+
+
+def ndimage_dilate(mask: np.ndarray) -> np.ndarray:
+    from scipy import ndimage
+
+    return ndimage.binary_dilation(mask, ndimage.generate_binary_structure(2, 1))
+
+
 def test_geometry_reads_the_camera_and_mounts_from_the_sensor_setup(tmp_path):
     from umad_common.datasets.anovox import read_sensor_setup
     from umad_common.datasets.synthetic.generator import sensor_setup

@@ -9,7 +9,8 @@ Per frame:
 3. cluster the remaining points with DBSCAN: one cluster per object (with `near_range`, a far point
    counts as several, as a far object returns fewer hits);
 4. grow each cluster into its image region: the pixels its points hit (closed, holes filled), plus
-   every segment of the `rest` method whose lidar-hit pixels are mostly that cluster's;
+   every segment of the `rest` method whose lidar-hit pixels are mostly that cluster's; with
+   `snap_px`, then up to that many pixels further where the image's colour says object, not background;
 5. the `rest` method's segments, less the objects, cover everything else, so the masks tile the
    frame: geometry where the lidar sees an object, image segments elsewhere (the combination).
 
@@ -37,6 +38,8 @@ from umad_common.segmentation.base import (
 
 Triplet = tuple[float, float, float]
 CROSS = ndimage.generate_binary_structure(2, 1)  # 4-connectivity
+SQUARE = ndimage.generate_binary_structure(2, 2)  # 8-connectivity
+SNAP_MIN_CONTRAST = 0.05  # snap_px: mean colours (RGB in [0, 1]) nearer than this do not tell object from background
 
 
 @dataclass(frozen=True)
@@ -168,6 +171,13 @@ class Geometry(SegmenterMethod):
             description=f"a rest segment joins an object when this share of its lidar-hit pixels is it; {TUNED}",
         )
         close_px: int = Field(1, ge=0, description="close each object's hit pixels with this radius (px) first")
+        snap_px: int = Field(
+            0,
+            ge=0,
+            description="grow each object by up to this many pixels (ours) into the free pixels around it whose colour "
+            "is nearer the object's mean colour than the mean colour just beyond (the lidar's rays land about a pixel "
+            "apart at model resolution, so an object reaches past its outermost hits); 0: off",
+        )
         rest: str = Field(
             "slic",
             description="the method whose segments cover the rest of the frame and grow the objects (a registered "
@@ -214,7 +224,7 @@ class Geometry(SegmenterMethod):
                 )
             return rest
         rig = self.rig_of(frame)
-        objects = self.objects(points, rig, shape, rest)
+        objects = self.objects(points, rig, shape, rest, image)
         rest = rest & ~objects.any(axis=0)
         return np.concatenate([objects, rest[rest.any(axis=(1, 2))]], axis=0)
 
@@ -239,8 +249,10 @@ class Geometry(SegmenterMethod):
             )
         return SensorRig.from_sensors(sensors, f"segmenter {frame.frame_id}")
 
-    def objects(self, points: np.ndarray, rig: SensorRig, shape: tuple[int, int], rest: np.ndarray) -> np.ndarray:
-        """(K, h, w) bool, one mask per lidar object seen in the image, nearer objects on top."""
+    def objects(
+        self, points: np.ndarray, rig: SensorRig, shape: tuple[int, int], rest: np.ndarray, image: np.ndarray
+    ) -> np.ndarray:
+        """(K, h, w) bool, one mask per lidar object seen in `image`, nearer objects on top."""
         p = self.params
         h, w = shape
         rows, cols, depth = rig.project(points[:, :3], shape)
@@ -278,6 +290,8 @@ class Geometry(SegmenterMethod):
                 window = grown_box(hit_boxes[k], p.close_px + 1, shape)
                 owner[window][hit_region(hit[window] == k, p.close_px)] = k
             owner[segment_object == k] = k
+        if p.snap_px:
+            snap_to_colour(owner, image, count, p.snap_px)
         ids, sizes = np.unique(owner[owner >= 0], return_counts=True)
         ids = ids[np.argsort(-sizes, kind="stable")]
         return owner[None] == ids[:, None, None]
@@ -321,6 +335,52 @@ def hit_region(hits: np.ndarray, close_px: int) -> np.ndarray:
     if close_px:
         hits = ndimage.binary_closing(hits, CROSS, iterations=close_px, border_value=0)
     return ndimage.binary_fill_holes(hits)
+
+
+def snap_to_colour(owner: np.ndarray, image: np.ndarray, count: int, reach: int) -> None:
+    """Grow the objects of `owner` ((h, w) object index, -1 free; changed in place) a pixel at a time
+    (8-connected), up to `reach` pixels, into free pixels whose colour in `image` (h, w, 3) is nearer
+    the object's mean colour than its background's: the free pixels 1-2 pixels beyond that reach
+    whose nearest object it is. An object whose mean colour is within SNAP_MIN_CONTRAST of its
+    background's stays as it is; a pixel next to several objects joins, of the highest- and the
+    lowest-index one, the one nearer its colour."""
+    free = owner == -1
+    if free.all() or not free.any():
+        return
+    colours = image.reshape(-1, image.shape[-1]).astype(np.float64)
+    distance, (rows, cols) = ndimage.distance_transform_cdt(free, metric="chessboard", return_indices=True)
+    nearest = owner[rows, cols]  # the nearest object of every pixel
+    background = (free & (distance > reach) & (distance <= reach + 2)).reshape(-1)
+
+    def mean_colours(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        labels = nearest.reshape(-1)[pixels]
+        counts = np.bincount(labels, minlength=count)
+        sums = np.stack([np.bincount(labels, c, minlength=count) for c in colours[pixels].T], axis=1)
+        return sums / np.maximum(counts, 1)[:, None], counts
+
+    object_colour, _ = mean_colours(owner.reshape(-1) >= 0)
+    background_colour, in_background = mean_colours(background)
+    distinct = (in_background > 0) & (np.linalg.norm(object_colour - background_colour, axis=1) >= SNAP_MIN_CONTRAST)
+    for _ in range(reach):
+        free_pixels = np.flatnonzero(owner == -1)
+        best_distance = np.full(len(free_pixels), np.inf)
+        best_object = np.full(len(free_pixels), -1)
+        as_high = np.where(owner >= 0, owner, count)  # free pixels never win the minimum
+        for neighbour in (
+            ndimage.grey_dilation(owner, footprint=SQUARE, mode="constant", cval=-1),  # highest adjacent index
+            ndimage.grey_erosion(as_high, footprint=SQUARE, mode="constant", cval=count),  # lowest
+        ):
+            k = neighbour.reshape(-1)[free_pixels]
+            adjacent = (k >= 0) & (k < count)
+            k = np.where(adjacent, k, 0)
+            pixel = colours[free_pixels]
+            to_object = np.square(pixel - object_colour[k]).sum(axis=1)
+            joins = adjacent & distinct[k] & (to_object < np.square(pixel - background_colour[k]).sum(axis=1))
+            better = joins & (to_object < best_distance)
+            best_distance[better], best_object[better] = to_object[better], k[better]
+        if (best_object < 0).all():
+            break
+        owner.reshape(-1)[free_pixels[best_object >= 0]] = best_object[best_object >= 0]
 
 
 def rest_class(name: str, options: dict[str, Any]) -> type[SegmenterMethod] | None:
