@@ -379,13 +379,15 @@ def test_snap_grows_an_object_into_pixels_of_its_colour_and_no_further():
     np.testing.assert_array_equal(grown, owner)
 
 
-def test_geometry_snap_px_adds_the_objects_rim_that_its_hits_miss():
+def test_geometry_snaps_by_default_adding_the_objects_rim_that_its_hits_miss():
     image = np.full((H, W, 3), 0.3, np.float32)
     face = box_pixels()
     image[ndimage_dilate(face)] = (0.9, 0.2, 0.1)  # the object drawn a pixel wider than the lidar sees it
-    options = {**ANOVOX_RIG, "snap_px": 1}
-    plain = Segmenter({"method": "geometry", "options": ANOVOX_RIG}).process(lidar_frame(box_on_a_plane(), image=image))
-    snapped = Segmenter({"method": "geometry", "options": options}).process(lidar_frame(box_on_a_plane(), image=image))
+    options = {**ANOVOX_RIG, "snap_px": 0}
+    plain = Segmenter({"method": "geometry", "options": options}).process(lidar_frame(box_on_a_plane(), image=image))
+    snapped = Segmenter({"method": "geometry", "options": ANOVOX_RIG}).process(
+        lidar_frame(box_on_a_plane(), image=image)
+    )
     plain, snapped = plain["masks"].arrays["masks"][0], snapped["masks"].arrays["masks"][0]
     red = ndimage_dilate(face)
     assert (snapped & red).sum() > (plain & red).sum(), "the rim joins"

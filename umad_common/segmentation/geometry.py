@@ -172,11 +172,12 @@ class Geometry(SegmenterMethod):
         )
         close_px: int = Field(1, ge=0, description="close each object's hit pixels with this radius (px) first")
         snap_px: int = Field(
-            0,
+            1,
             ge=0,
             description="grow each object by up to this many pixels (ours) into the free pixels around it whose colour "
             "is nearer the object's mean colour than the mean colour just beyond (the lidar's rays land about a pixel "
-            "apart at model resolution, so an object reaches past its outermost hits); 0: off",
+            "apart at model resolution, so an object reaches past its outermost hits); 0: off. 1 chosen on "
+            "validation seeds 2 and 31 (`umad eval --data`, refined AP and FPR95; docs/experiments.md)",
         )
         rest: str = Field(
             "slic",
