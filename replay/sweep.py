@@ -262,6 +262,9 @@ class SweepResult:
     def _unsupervised_ops(self) -> list[str]:
         return [op for op in self._ops_in_order() if self.segmenters[op] not in ("gt", "sam")]
 
+    def masks_name(self, op: str) -> str:
+        return masks_name(self.segmenters, op)
+
     def paper_settings(self) -> list[PaperSetting]:
         """The paper's mask settings in its order: each segmenter with mean refinement (GT,
         unsupervised, SAM), then max value, no mask and single mask with the first unsupervised
@@ -270,10 +273,10 @@ class SweepResult:
         unsupervised = self._unsupervised_ops()
         if not ops:
             return [PaperSetting("no mask", "none")]
-        main = self.segmenters[(unsupervised or ops)[0]]
+        main = self.masks_name((unsupervised or ops)[0])
         kinds = {"gt": "gt", "sam": "sam"}
         means = [
-            PaperSetting(f"{self.segmenters[op]} mean", kinds.get(self.segmenters[op], "unsupervised")) for op in ops
+            PaperSetting(f"{self.masks_name(op)} mean", kinds.get(self.segmenters[op], "unsupervised")) for op in ops
         ]
         return [
             *means,
@@ -285,19 +288,19 @@ class SweepResult:
     def headline_settings(self) -> list[PaperSetting]:
         """The paper's mask settings, then ours: the first unsupervised segmenter with `mean_pixel`."""
         unsupervised = self._unsupervised_ops()
-        ours = [f"{self.segmenters[op]} mean_pixel" for op in unsupervised[:1]]
+        ours = [f"{self.masks_name(op)} mean_pixel" for op in unsupervised[:1]]
         return self.paper_settings() + [PaperSetting(label, "unsupervised_pixel") for label in ours]
 
     def setting_labels(self) -> list[str]:
         """Every mask setting's label in table order: the paper's, then ours (every other segmenter x mode)."""
         paper = [setting.label for setting in self.paper_settings()]
-        every = [f"{self.segmenters[op]} {mode}" for op in self._ops_in_order() for mode in REFINE_MODES]
+        every = [f"{self.masks_name(op)} {mode}" for op in self._ops_in_order() for mode in REFINE_MODES]
         return paper + [label for label in every if label not in paper]
 
     def setting_label(self, config: Config) -> str:
         if config.segmenter is None:
             return "no mask"
-        return f"{self.segmenters.get(config.segmenter, config.segmenter)} {config.mode}"
+        return f"{self.masks_name(config.segmenter)} {config.mode}"
 
 
 class Sweep:
@@ -365,11 +368,11 @@ class Sweep:
                 for mode, refined in mask_set.refine_all(fused, self.rows[i].modes).items():
                     self._count(Config(i, op, mode), refined, pixels)
                     if i == self.default_row:
-                        label = f"{segmenters.get(op, op)} {mode}"
-                        self._scenario(frame.run, label).update_labelled(refined, pixels)
+                        name = masks_name(segmenters, op)
+                        self._scenario(frame.run, f"{name} {mode}").update_labelled(refined, pixels)
                         if mode == "mean":
-                            pictures[f"refined ({segmenters.get(op, op)} mean)"] = refined
-                            followed[f"{segmenters.get(op, op)} mean"] = refined
+                            pictures[f"refined ({name} mean)"] = refined
+                            followed[f"{name} mean"] = refined
         location = dict(frame.diffs) | ({"fused": followed["fused"]} if "fused" in followed else {})
         self.diagnosis.update(frame.run, frame.seq, frame.truth, frame.semantic, location, followed)
         self._keep_overlay(frame, labels, pictures)
@@ -425,6 +428,15 @@ class Sweep:
             every=self.every,
             diagnosis=self.diagnosis.compute(),
         )
+
+
+def masks_name(segmenters: dict[str, str], op: str) -> str:
+    """How tables name a segmenter op's masks (`segmenters`: op -> method): its method, or
+    `method (op)` when several ops of the run share that method (two configurations of one
+    segmenter compared side by side)."""
+    method = segmenters.get(op, op)
+    shared = sum(m == method for m in segmenters.values()) > 1
+    return f"{method} ({op})" if shared else method
 
 
 def model_size_inputs(frame: FrameRecord) -> tuple[tuple[int, int], np.ndarray, dict[str, np.ndarray]]:

@@ -271,6 +271,16 @@ def test_rows_and_settings(result):
     assert set(result.frames.values()) == {12}
 
 
+def test_two_segmenters_of_one_method_are_named_by_their_ops():
+    from replay.sweep import masks_name
+
+    segmenters = {"seg_gt": "gt", "segment_unsup": "geometry", "segment_nosnap": "geometry"}
+    assert masks_name(segmenters, "seg_gt") == "gt"
+    assert masks_name(segmenters, "segment_unsup") == "geometry (segment_unsup)"
+    assert masks_name(segmenters, "segment_nosnap") == "geometry (segment_nosnap)"
+    assert masks_name({"seg": "geometry"}, "seg") == "geometry"
+
+
 @pytest.mark.parametrize("row", [0, 4, 5, 14])
 def test_numbers_equal_direct_computation(result, log_and_truth, row):
     truths = log_and_truth[1]
