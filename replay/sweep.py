@@ -262,9 +262,6 @@ class SweepResult:
     def _unsupervised_ops(self) -> list[str]:
         return [op for op in self._ops_in_order() if self.segmenters[op] not in ("gt", "sam")]
 
-    def masks_name(self, op: str) -> str:
-        return masks_name(self.segmenters, op)
-
     def paper_settings(self) -> list[PaperSetting]:
         """The paper's mask settings in its order: each segmenter with mean refinement (GT,
         unsupervised, SAM), then max value, no mask and single mask with the first unsupervised
@@ -273,10 +270,11 @@ class SweepResult:
         unsupervised = self._unsupervised_ops()
         if not ops:
             return [PaperSetting("no mask", "none")]
-        main = self.masks_name((unsupervised or ops)[0])
+        main = masks_name(self.segmenters, (unsupervised or ops)[0])
         kinds = {"gt": "gt", "sam": "sam"}
         means = [
-            PaperSetting(f"{self.masks_name(op)} mean", kinds.get(self.segmenters[op], "unsupervised")) for op in ops
+            PaperSetting(f"{masks_name(self.segmenters, op)} mean", kinds.get(self.segmenters[op], "unsupervised"))
+            for op in ops
         ]
         return [
             *means,
@@ -288,19 +286,19 @@ class SweepResult:
     def headline_settings(self) -> list[PaperSetting]:
         """The paper's mask settings, then ours: the first unsupervised segmenter with `mean_pixel`."""
         unsupervised = self._unsupervised_ops()
-        ours = [f"{self.masks_name(op)} mean_pixel" for op in unsupervised[:1]]
+        ours = [f"{masks_name(self.segmenters, op)} mean_pixel" for op in unsupervised[:1]]
         return self.paper_settings() + [PaperSetting(label, "unsupervised_pixel") for label in ours]
 
     def setting_labels(self) -> list[str]:
         """Every mask setting's label in table order: the paper's, then ours (every other segmenter x mode)."""
         paper = [setting.label for setting in self.paper_settings()]
-        every = [f"{self.masks_name(op)} {mode}" for op in self._ops_in_order() for mode in REFINE_MODES]
+        every = [f"{masks_name(self.segmenters, op)} {mode}" for op in self._ops_in_order() for mode in REFINE_MODES]
         return paper + [label for label in every if label not in paper]
 
     def setting_label(self, config: Config) -> str:
         if config.segmenter is None:
             return "no mask"
-        return f"{self.masks_name(config.segmenter)} {config.mode}"
+        return f"{masks_name(self.segmenters, config.segmenter)} {config.mode}"
 
 
 class Sweep:

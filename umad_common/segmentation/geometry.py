@@ -364,6 +364,7 @@ def snap_to_colour(owner: np.ndarray, image: np.ndarray, count: int, reach: int)
     distinct = (in_background > 0) & (np.linalg.norm(object_colour - background_colour, axis=1) >= SNAP_MIN_CONTRAST)
     for _ in range(reach):
         free_pixels = np.flatnonzero(owner == -1)
+        pixel = colours[free_pixels]
         best_distance = np.full(len(free_pixels), np.inf)
         best_object = np.full(len(free_pixels), -1)
         as_high = np.where(owner >= 0, owner, count)  # free pixels never win the minimum
@@ -374,7 +375,6 @@ def snap_to_colour(owner: np.ndarray, image: np.ndarray, count: int, reach: int)
             k = neighbour.reshape(-1)[free_pixels]
             adjacent = (k >= 0) & (k < count)
             k = np.where(adjacent, k, 0)
-            pixel = colours[free_pixels]
             to_object = np.square(pixel - object_colour[k]).sum(axis=1)
             joins = adjacent & distinct[k] & (to_object < np.square(pixel - background_colour[k]).sum(axis=1))
             better = joins & (to_object < best_distance)
