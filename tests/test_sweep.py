@@ -3,6 +3,7 @@ direct computation with numpy + scikit-learn; a truncated log; the report files.
 
 from __future__ import annotations
 
+import csv
 import json
 import re
 from fractions import Fraction
@@ -458,6 +459,19 @@ def test_report_files(result, log_and_truth, tmp_path):
     assert f"**{100 * best_ap:.2f}**" in table
     scenarios = (out / "per_scenario.md").read_text()
     assert "| Scenario_a | animal |" in scenarios and "| Scenario_b | home |" in scenarios
+    with open(out / "per_scenario.csv") as f:
+        per_setting: dict[str, dict[str, float]] = {}
+        for line in csv.DictReader(f):
+            per_setting.setdefault(line["setting"], {})[line["scenario"]] = float(line["AUROC"])
+    weakest = next(line for line in scenarios.splitlines() if line.startswith("| weakest scenario |"))
+    cells = [c.strip() for c in weakest.strip("|").split("|")][2:]
+    assert len(cells) == len(per_setting)
+    for cell, aurocs in zip(
+        cells, per_setting.values(), strict=True
+    ):  # the CSV lists the settings in the table's order
+        run = min(aurocs, key=aurocs.get)
+        below = sum(a < 0.8 for a in aurocs.values())
+        assert cell == f"AUROC {100 * aurocs[run]:.2f} ({run.removeprefix('Scenario_')}), {below} of 2 below"
     for name in ("table.md", "per_scenario.md", "components.md"):  # each table file names the PD network
         assert "PD network: label-free feature net features.safetensors" in (out / name).read_text(), name
 

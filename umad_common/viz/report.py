@@ -39,6 +39,7 @@ METRIC_COLUMNS = {  # a weight row's metric -> its column: the paper's five, the
     "ssim_shift": "SSIM±2",
 }
 METRICS = tuple(METRIC_COLUMNS)
+AUROC_FLOOR = 0.80  # a scenario whose AUROC is below this is one the detector fails (issue 30's bar)
 Layout = Literal["long", "paper"]
 LAYOUTS = ("long", "paper")
 
@@ -231,11 +232,13 @@ def component_table(components: dict[str, dict]) -> Table:
 def scenario_table(result: SweepResult, csv_path: Path) -> Table:
     """AP / FPR95 / AUROC per scenario for the default weight row under each mask setting, the best
     row under each headline mask setting (`best <setting>: <row>`, from the sweep's second pass) and
-    MNAD, with the AnoVox categories found under the scenario's anomaly pixels; also written as CSV."""
+    MNAD, with the AnoVox categories found under the scenario's anomaly pixels; also written as CSV.
+    A last line names each setting's weakest scenario by AUROC and how many fall below AUROC_FLOOR."""
     present = list(dict.fromkeys(label for per_run in result.per_scenario.values() for label in per_run))
     default_row = [label for label in result.setting_labels() if label in present]
     best_rows = [label for label in present if label not in default_row and label != "MNAD"]
     settings = default_row + best_rows + (["MNAD"] if "MNAD" in present else [])
+    aurocs: dict[str, dict[str, float]] = {setting: {} for setting in settings}  # setting -> run -> AUROC
     lines = []
     with open(csv_path, "w", newline="") as f:
         writer = csv.writer(f)
@@ -250,12 +253,30 @@ def scenario_table(result: SweepResult, csv_path: Path) -> Table:
                     cells.append(Cell(""))
                     continue
                 s = metrics.compute()
+                if _number(s["AUROC"]) is not None:
+                    aurocs[setting][run] = s["AUROC"]
                 cells.append(Cell(" / ".join(percent(_number(s[k])) for k, _ in SCORES)))
                 writer.writerow(
                     [run, anomaly, setting, *(_number(s[k]) for k, _ in SCORES), s["n_anomaly"], s["n_normal"]]
                 )
             lines.append(cells)
+    if len(result.per_scenario) > 1:
+        lines.append(
+            text_cells(
+                "weakest scenario", f"below {100 * AUROC_FLOOR:.0f} % AUROC", *map(weakest_text, aurocs.values())
+            )
+        )
     return Table(["scenario", "anomaly", *(f"{s} AP / FPR95 / AUROC" for s in settings)], lines)
+
+
+def weakest_text(aurocs: dict[str, float]) -> str:
+    """`AUROC <lowest> (<its scenario's short name>), <n> of <N> below AUROC_FLOOR` for one setting's
+    per-scenario AUROCs (run -> AUROC), or "" when none was scored."""
+    if not aurocs:
+        return ""
+    run = min(aurocs, key=aurocs.get)
+    below = sum(value < AUROC_FLOOR for value in aurocs.values())
+    return f"AUROC {percent(aurocs[run])} ({run.removeprefix('Scenario_')[:8]}), {below} of {len(aurocs)} below"
 
 
 def selected_curves(result: SweepResult) -> dict[str, PixelMetrics]:
@@ -373,7 +394,9 @@ def write_report(
             "Per scenario",
             [
                 f"Default weights ({summary['default_weights']}) under each mask setting, then the best "
-                "row under each headline mask setting (`best …`). Files: per_scenario.md, per_scenario.csv."
+                "row under each headline mask setting (`best …`); the last line names each setting's weakest "
+                f"scenario by AUROC and counts those below {100 * AUROC_FLOOR:.0f} %. Files: per_scenario.md, "
+                "per_scenario.csv."
             ],
             [scenarios],
         ),
