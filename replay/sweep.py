@@ -348,6 +348,7 @@ class Sweep:
         pixels = LabelledPixels(labels)  # split once, read by every configuration's metrics
         self.score_shapes.add(shape)
         mask_sets = {op: MaskSet(op_masks) for op, op_masks in masks.items()}
+        names = {op: masks_name(segmenters, op) for op in mask_sets}
         usable = [i for i, row in enumerate(self.rows) if set(row.weights) <= set(frame.diffs)]
         if self.default_row is None and usable:
             self.default_row = max(usable, key=lambda i: (len(self.rows[i].weights), not self.rows[i].extra, i))
@@ -366,7 +367,7 @@ class Sweep:
                 for mode, refined in mask_set.refine_all(fused, self.rows[i].modes).items():
                     self._count(Config(i, op, mode), refined, pixels)
                     if i == self.default_row:
-                        name = masks_name(segmenters, op)
+                        name = names[op]
                         self._scenario(frame.run, f"{name} {mode}").update_labelled(refined, pixels)
                         if mode == "mean":
                             pictures[f"refined ({name} mean)"] = refined

@@ -466,9 +466,8 @@ def test_report_files(result, log_and_truth, tmp_path):
     weakest = next(line for line in scenarios.splitlines() if line.startswith("| weakest scenario |"))
     cells = [c.strip() for c in weakest.strip("|").split("|")][2:]
     assert len(cells) == len(per_setting)
-    for cell, aurocs in zip(
-        cells, per_setting.values(), strict=True
-    ):  # the CSV lists the settings in the table's order
+    # the CSV lists the settings in the table's order
+    for cell, aurocs in zip(cells, per_setting.values(), strict=True):
         run = min(aurocs, key=aurocs.get)
         below = sum(a < 0.8 for a in aurocs.values())
         assert cell == f"AUROC {100 * aurocs[run]:.2f} ({run.removeprefix('Scenario_')}), {below} of 2 below"

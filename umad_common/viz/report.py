@@ -253,12 +253,11 @@ def scenario_table(result: SweepResult, csv_path: Path) -> Table:
                     cells.append(Cell(""))
                     continue
                 s = metrics.compute()
-                if _number(s["AUROC"]) is not None:
-                    aurocs[setting][run] = s["AUROC"]
-                cells.append(Cell(" / ".join(percent(_number(s[k])) for k, _ in SCORES)))
-                writer.writerow(
-                    [run, anomaly, setting, *(_number(s[k]) for k, _ in SCORES), s["n_anomaly"], s["n_normal"]]
-                )
+                scores = {k: _number(s[k]) for k, _ in SCORES}
+                if scores["AUROC"] is not None:
+                    aurocs[setting][run] = scores["AUROC"]
+                cells.append(Cell(" / ".join(map(percent, scores.values()))))
+                writer.writerow([run, anomaly, setting, *scores.values(), s["n_anomaly"], s["n_normal"]])
             lines.append(cells)
     if len(result.per_scenario) > 1:
         lines.append(
