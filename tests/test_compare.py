@@ -49,6 +49,16 @@ def test_compare_writes_every_row_with_the_difference(runs, tmp_path, capsys):
     assert cells[5] == f"{delta:+.2f}"
     assert cells[4].startswith("**") == (delta > 0)  # marked where B is better
     assert markdown.count("\n| ") >= len(a["rows"]) + 1
+    low_a, low_b = (
+        next(s for s in r["headline"]["settings"] if s["masks"] == "no mask")["lowest_FPR95"] for r in (a, b)
+    )
+    lowest_line = next(
+        line for line in markdown.splitlines() if line.startswith("| no mask |") and line.count("|") == 6
+    )
+    cells = [c.strip().strip("*_") for c in lowest_line.split("|")]
+    assert cells[2] == f"{low_a['weights_label']} / {low_b['weights_label']}"
+    assert cells[3:5] == [f"{100 * low_a['FPR95']:.2f}", f"{100 * low_b['FPR95']:.2f}"]
+    assert low_a["FPR95"] != low_b["FPR95"] and cells[5] == f"{100 * (low_b['FPR95'] - low_a['FPR95']):+.2f}"
     page = (tmp_path / "compare.html").read_text()
     assert 'class="better num"' in page and "UMAD / MNAD (AP)" in page
 

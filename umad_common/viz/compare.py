@@ -16,6 +16,7 @@ from typing import Any
 from umad_common.viz.headline import (
     SCORES,
     describe_model,
+    lowest_fpr,
     percent,
     protocol_line,
     ratio_text,
@@ -118,6 +119,29 @@ def headline_table(a: dict[str, Any], b: dict[str, Any]) -> Table:
     )
 
 
+def lowest_fpr_table(a: dict[str, Any], b: dict[str, Any]) -> Table:
+    """Each headline mask setting's lowest FPR95 over all its rows in A and B, which row reached it,
+    and B - A."""
+    titles: dict[str, str] = {}
+    for setting in [*a["headline"]["settings"], *b["headline"]["settings"]]:
+        titles.setdefault(setting["masks"], setting["title"])
+    lines = []
+    for label, title in titles.items():
+        low_a, low_b = lowest_fpr(a["rows"], label) or {}, lowest_fpr(b["rows"], label) or {}
+        lines.append(
+            [
+                Cell(title),
+                Cell(f"{low_a.get('weights_label', '-')} / {low_b.get('weights_label', '-')}"),
+                *_delta_cells(low_a.get("FPR95"), low_b.get("FPR95"), False, percent),
+            ]
+        )
+    return Table(
+        ["mask setting", "its row A / B", "lowest FPR95 A", "B", "B - A"],
+        lines,
+        "The lowest FPR95 over every weight row of each mask setting; values in %.",
+    )
+
+
 def ratio_table(a: dict[str, Any], b: dict[str, Any]) -> Table:
     ratios_a, ratios_b = a["headline"]["ratios"], b["headline"]["ratios"]
     lines = [
@@ -172,7 +196,7 @@ def compare_page(a: dict[str, Any], b: dict[str, Any], name_a: str, name_b: str)
         f"({sampling_text(scored_every(protocol))})."
     )
     sections = [
-        Section("Headline", tables=[headline_table(a, b), ratio_table(a, b)]),
+        Section("Headline", tables=[headline_table(a, b), lowest_fpr_table(a, b), ratio_table(a, b)]),
         Section(
             "What differs",
             model_lines(a, b) + [f"A: {protocol_line(a['protocol'])}", f"B: {protocol_line(b['protocol'])}"],

@@ -60,18 +60,13 @@ def headline_figures(
         if not scored:
             continue
         top = max(scored, key=lambda r: r["AP"])
-        with_fpr = [r for r in scored if r["FPR95"] is not None]
-        lowest = None
-        if with_fpr:
-            low = min(with_fpr, key=lambda r: r["FPR95"])
-            lowest = {"weights_label": low["weights_label"], "FPR95": low["FPR95"], "AP": low["AP"]}
         title = COLUMN_TITLES[column]
         if column in ("unsupervised", "max", "single", "unsupervised_pixel"):
             title += f": {label.rsplit(' ', 1)[0]}"
         best.append(
             {"column": column, "title": title, "masks": label, "weights_label": top["weights_label"]}
             | {key: top[key] for key, _ in SCORES}
-            | {"lowest_FPR95": lowest}
+            | {"lowest_FPR95": lowest_fpr(rows, label)}
         )
     mnad = None if baseline is None else {key: baseline[key] for key, _ in SCORES}
 
@@ -88,6 +83,16 @@ def headline_figures(
         "unsupervised / no mask (AP)": ratio(unsupervised, ap("none")),
     }
     return {"settings": best, "mnad": mnad, "ratios": ratios}
+
+
+def lowest_fpr(rows: list[dict[str, Any]], masks: str) -> dict[str, Any] | None:
+    """The row of mask setting `masks` with the lowest FPR95, as {weights_label, FPR95, AP}; None
+    where no row has an FPR95."""
+    scored = [r for r in rows if r["masks"] == masks and r["FPR95"] is not None]
+    if not scored:
+        return None
+    low = min(scored, key=lambda r: r["FPR95"])
+    return {"weights_label": low["weights_label"], "FPR95": low["FPR95"], "AP": low["AP"]}
 
 
 def scored_every(protocol: dict[str, Any]) -> int:
