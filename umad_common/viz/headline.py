@@ -152,7 +152,7 @@ def lowest_fpr_text(lowest: dict[str, Any] | None) -> str:
 
 
 def headline_tables(headline: dict[str, Any]) -> list[Table]:
-    """The best row per mask setting (and its lowest FPR95) next to MNAD, then the ratios; each with the
+    """The best row per mask setting (and the setting's lowest FPR95) next to MNAD, then the ratios; each with the
     paper's column."""
     best = Table(
         ["mask setting", "best weights", "AP ↑", "FPR95 ↓", "AUROC ↑", "lowest FPR95 ↓", "paper (AnoVox, %)"],
