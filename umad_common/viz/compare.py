@@ -92,13 +92,21 @@ def _score_header(first: list[str]) -> list[str]:
     return first + [f"{key} {run}" for key, _ in SCORES for run in ("A", "B", "B - A")]
 
 
-def headline_table(a: dict[str, Any], b: dict[str, Any]) -> Table:
-    """Best row per mask setting and MNAD: AP, FPR95, AUROC of A and B and the difference."""
+def headline_settings(a: dict[str, Any], b: dict[str, Any]) -> list[tuple[str, dict, dict]]:
+    """(mask setting, A's headline entry, B's) for every headline setting of either run, A's order
+    first; an entry is {} where that run lacks the setting."""
     settings_a = {s["masks"]: s for s in a["headline"]["settings"]}
     settings_b = {s["masks"]: s for s in b["headline"]["settings"]}
+    return [
+        (label, settings_a.get(label, {}), settings_b.get(label, {}))
+        for label in dict.fromkeys([*settings_a, *settings_b])
+    ]
+
+
+def headline_table(a: dict[str, Any], b: dict[str, Any]) -> Table:
+    """Best row per mask setting and MNAD: AP, FPR95, AUROC of A and B and the difference."""
     lines = []
-    for label in dict.fromkeys([*settings_a, *settings_b]):
-        sa, sb = settings_a.get(label, {}), settings_b.get(label, {})
+    for _, sa, sb in headline_settings(a, b):
         rows = [
             Cell((sa or sb)["title"]),
             Cell(f"{sa.get('weights_label', '-')} / {sb.get('weights_label', '-')}"),
@@ -122,15 +130,12 @@ def headline_table(a: dict[str, Any], b: dict[str, Any]) -> Table:
 def lowest_fpr_table(a: dict[str, Any], b: dict[str, Any]) -> Table:
     """Each headline mask setting's lowest FPR95 over all its rows in A and B, which row reached it,
     and B - A."""
-    titles: dict[str, str] = {}
-    for setting in [*a["headline"]["settings"], *b["headline"]["settings"]]:
-        titles.setdefault(setting["masks"], setting["title"])
     lines = []
-    for label, title in titles.items():
+    for label, sa, sb in headline_settings(a, b):
         low_a, low_b = lowest_fpr(a["rows"], label) or {}, lowest_fpr(b["rows"], label) or {}
         lines.append(
             [
-                Cell(title),
+                Cell((sa or sb)["title"]),
                 Cell(f"{low_a.get('weights_label', '-')} / {low_b.get('weights_label', '-')}"),
                 *_delta_cells(low_a.get("FPR95"), low_b.get("FPR95"), False, percent),
             ]
