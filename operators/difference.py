@@ -20,10 +20,12 @@ from umad_common.dataflow import Context, Frame, Input, Operator, Output, input_
 from umad_common.differences import (
     DifferenceMetric,
     MetricOptions,
+    RangePairs,
     build_metric,
     calibrated,
     load_calibration,
     minmax,
+    range_pairs,
     robust,
 )
 from umad_common.models.device import DeviceName, device_field
@@ -43,7 +45,8 @@ class Difference(Operator):
 
         metric: str = Field(
             "abs",
-            description="abs | mse | ssim | perceptual | temporal, or `package.module:Class` of a DifferenceMetric",
+            description="abs | mse | ssim | ssim_shift | perceptual | temporal | lidar, or `package.module:Class` of "
+            "a DifferenceMetric",
         )
         normalization: Literal["minmax", "robust", "calibrated"] = Field(
             "minmax",
@@ -70,6 +73,7 @@ class Difference(Operator):
 
     def __init__(self, params: BaseModel | dict | None = None, context: Context | None = None):
         super().__init__(params, context)
+        self.silent_runs: set[str] = set()  # runs whose lack of lidar returns was said already
         self._configure(self.params)
 
     def update_params(self, params: BaseModel) -> None:
@@ -93,7 +97,10 @@ class Difference(Operator):
 
     def process(self, frame: Frame) -> dict[str, Output]:
         target, recon, preds, pred_valid = (input_array(frame, "frame", name, self.kind) for name in FRAME_ARRAYS)
-        raw = self.metric(target, recon, preds, pred_valid)
+        lidar = range_pairs(frame.inputs["frame"].arrays) if self.metric.needs_lidar else None
+        if self.metric.needs_lidar and (lidar is None or len(lidar.range) == 0):
+            return {"map": self.no_data(frame, target.shape[:2], lidar)}
+        raw = self.metric(target, recon, preds, pred_valid, lidar=lidar)
         if self.params.normalization == "calibrated":
             score = calibrated(raw, self.scale)
         elif self.params.normalization == "robust":
@@ -105,3 +112,19 @@ class Difference(Operator):
             meta["calibration_scale"] = self.scale
         meta.update(self.metric.notes(pred_valid))
         return {"map": Output({"map": np.ascontiguousarray(score, dtype=np.float32)}, meta)}
+
+    def no_data(self, frame: Frame, shape: tuple[int, int], lidar: RangePairs | None) -> Output:
+        """A lidar metric's frame without returns to compare: a map of zeros marked `no_data` (fusion and
+        the sweep leave it out, as if the operator were absent), said in one line once per run."""
+        reason = (
+            "the world model sends no lidar returns (a model without a lidar head)"
+            if lidar is None
+            else "no lidar return lands in the camera's view (data without lidar)"
+        )
+        if frame.run not in self.silent_runs:
+            self.silent_runs.add(frame.run)
+            self.context.log.warning(
+                "%s %s: %s; this map stays out of fusion, the camera maps carry on", self.kind, frame.frame_id, reason
+            )
+        meta = {"metric": self.params.metric, "normalization": self.params.normalization, "no_data": reason}
+        return Output({"map": np.zeros(shape, np.float32)}, meta)

@@ -4,6 +4,7 @@ Input `maps` is a wildcard port (e.g. `diff_*/map`): the runtime hands over what
 live for the frame, waiting for all expected ones up to `deadline_ms` in live mode and always in
 lossless mode. A metric that joins or leaves mid-stream is fused in or out from that frame on; new
 weights set through the control key (`umad set fusion.weights.ssim=0.5`) apply from the next frame.
+A map marked `no_data` (the lidar difference of a frame without lidar returns) is left out the same way.
 The arithmetic (and the rule for absent metrics) is `umad_common.refine.fuse`.
 """
 
@@ -55,6 +56,8 @@ class Fusion(Operator):
         maps = {}
         for producer in sorted(received):
             msg = received[producer]
+            if msg.meta.get("no_data"):
+                continue  # nothing measured (a lidar map without returns): fused as if absent
             metric = metric_of(producer, msg)
             if metric in maps:
                 raise ValueError(

@@ -14,6 +14,12 @@ posterior of their own observation on top of the last step's state, without adva
 the rollouts; they carry no predictions (`preds` zeros, `pred_valid` all 0). The model was trained
 with one step per `frame_step` dataset frames (in its JSON); stride should match it.
 
+With a lidar head (`WorldModelConfig.lidar_head`), a scored frame also carries the lidar returns that
+land in the camera's view (projected with the drive's sensor setup, the lidar message's meta
+`sensors`; AnoVox's rig where a drive has none) and, for each, the range the model's reconstructed
+lidar view expects there: what the `lidar` difference compares. A model without the head sends
+none, and says so once when it loads.
+
 A frame the source does not score (meta `skip`, `umad eval --every k`) still moves the state and the
 rollouts on, but nothing is decoded: the runtime passes it on as a skip marker.
 
@@ -34,6 +40,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from umad_common.dataflow import Frame, Input, Operator, Output, input_array
+from umad_common.datasets.sensor_rig import SensorRig
 from umad_common.models.device import DeviceName, device_field, resolve_device
 
 if TYPE_CHECKING:
@@ -97,6 +104,15 @@ class WorldModelPredictor(Operator):
         self.model, _ = world_model.load_world_model(self.model_path, self.device)
         self.model.fold_upsampling()
         self.config = self.model.config
+        if not self.config.lidar_head:
+            self.context.log.warning(
+                "world_model: %s has no lidar head (config lidar_head: trained without one, or saved before it existed); "
+                "the camera maps run, the lidar difference gets no returns. Add one with `umad train lidar-head DATA "
+                "--world-model %s --out NEW`",
+                self.model_path,
+                self.model_path,
+            )
+        self.assumed_rig_runs: set[str] = set()
         self.trained_frame_step = int(self.config.frame_step)
         self.run: str | None = None
         self.last_seq = 0  # the last frame of `run` processed
@@ -137,6 +153,34 @@ class WorldModelPredictor(Operator):
             speed=torch.tensor([[[ego[0] / c.speed_scale]]]),
         )
         return obs.to(self.device), target, wm.action_of(ego[1], ego[2], ego[3])
+
+    def rig_of(self, frame: Frame) -> SensorRig:
+        """The drive's camera and mounts from the lidar message's meta `sensors`; AnoVox's rig, said
+        once per run, where the drive has no sensor setup (the benchmark layout)."""
+        sensors = frame.inputs["lidar"].meta.get("sensors")
+        if sensors:
+            return SensorRig.from_sensors(sensors, f"world_model {frame.frame_id}")
+        if frame.run not in self.assumed_rig_runs:
+            self.assumed_rig_runs.add(frame.run)
+            self.context.log.warning(
+                "world_model %s: the lidar carries no sensor setup; the lidar view assumes AnoVox's rig", frame.frame_id
+            )
+        return SensorRig.anovox()
+
+    def lidar_arrays(self, frame: Frame, posterior: State) -> dict[str, np.ndarray]:
+        """The returns in the camera's view: `lidar_pixel` (N, 2) int32 (row, column) in the target
+        image, `lidar_range` (N,) float32 metres and `lidar_expected` (N,) float32, the range the
+        reconstructed lidar view holds at each return's view pixel."""
+        c, wm = self.config, self.wm
+        points = input_array(frame, "lidar", "points", self.kind)
+        returns = wm.lidar_returns(points, c, self.rig_of(frame))
+        expected = self.model.decode_lidar(posterior)[0].cpu().numpy()
+        scale = c.lidar_view_scale
+        return {
+            "lidar_pixel": np.stack([returns.row // scale, returns.col // scale], axis=1).astype(np.int32),
+            "lidar_range": returns.range,
+            "lidar_expected": np.ascontiguousarray(expected[returns.row, returns.col], np.float32),
+        }
 
     def missed_steps(self, seq: int) -> int:
         """Model steps (seqs on the stride) strictly between the last frame processed and `seq`: 0
@@ -227,4 +271,6 @@ class WorldModelPredictor(Operator):
             "preds": preds,
             "pred_valid": valid,
         }
+        if self.config.lidar_head and scored:
+            arrays.update(self.lidar_arrays(frame, posterior))
         return {"frame": Output(arrays, meta)}

@@ -161,6 +161,8 @@ def _fill(record: FrameRecord, op: str, output: str, msg, stats: LogStats) -> No
         record.masks[op] = PackedMasks.pack(np.asarray(arrays["masks"], dtype=bool))
         stats.segmenters.setdefault(op, str(meta.get("method", op)))
     elif output == "map" and "map" in arrays:
+        if meta.get("no_data"):
+            return  # a lidar map without returns: fusion left it out, so the sweep does too
         if "metric" in meta:
             metric = canonical_metric(str(meta["metric"]))
             record.diffs[metric] = np.array(arrays["map"], dtype=np.float32)

@@ -486,3 +486,55 @@ def test_train_features_command_reads_only_training_rgb(tmp_path):
     _, record = load_feature_net(out)
     assert record["training"]["frames"] == 4 and record["training"]["heldout_drives"] == ["Scenario_b"]
     assert record["training"]["device"] == "cpu"
+
+
+def test_lidar_difference_is_the_share_of_the_expected_range_that_something_blocks():
+    from umad_common.differences import LidarDifference, RangePairs
+
+    target, recon, preds, valid = random_frame(h=20, w=30)
+    pairs = RangePairs(
+        pixel=np.array([[5, 5], [5, 5], [15, 20], [0, 29]], np.int32),
+        range=np.array([10.0, 18.0, 30.0, 25.0], np.float32),
+        expected=np.array([20.0, 20.0, 20.0, 100.0], np.float32),
+    )
+    lidar_map = LidarDifference()(target, recon, preds, valid, lidar=pairs)
+    assert lidar_map.shape == (20, 30) and lidar_map.dtype == np.float32
+    assert lidar_map[5, 5] == pytest.approx(0.5)  # the larger of 1 - 10/20 and 1 - 18/20
+    assert lidar_map[15, 20] == 0.0  # farther than expected: nothing in the way
+    assert lidar_map[0, 29] == pytest.approx(0.75)
+    assert lidar_map[7, 5] == pytest.approx(0.5) and lidar_map[5, 3] == pytest.approx(0.5)  # filled within 2 px
+    assert lidar_map[8, 5] == 0.0 and lidar_map[12, 12] == 0.0  # beyond 2 px of any return
+    with pytest.raises(DifferenceInputError, match="no lidar returns"):
+        LidarDifference()(target, recon, preds, valid)
+    outside = pairs._replace(pixel=np.array([[5, 5], [5, 5], [15, 20], [0, 30]], np.int32))
+    with pytest.raises(DifferenceInputError, match="outside the 20 x 30 image"):
+        LidarDifference()(target, recon, preds, valid, lidar=outside)
+
+
+def test_lidar_operator_without_returns_says_so_once_and_fusion_leaves_its_map_out(caplog):
+    from operators.difference import Difference
+    from operators.fusion import Fusion
+
+    target, recon, preds, valid = random_frame(h=20, w=30)
+    camera_only = Message("run", 0, arrays={"target": target, "recon": recon, "preds": preds, "pred_valid": valid})
+    op = Difference({"metric": "lidar"})
+    with caplog.at_level("WARNING"):
+        for seq in (0, 1):
+            out = op.process(Frame("run", seq, seq, inputs={"frame": camera_only}))["map"]
+    assert out.meta["no_data"].startswith("the world model sends no lidar returns")
+    assert not out.arrays["map"].any()
+    assert sum("stays out of fusion" in r.message for r in caplog.records) == 1  # once per run
+    empty = {"lidar_pixel": np.zeros((0, 2), np.int32), "lidar_range": np.zeros(0, np.float32)}
+    empty["lidar_expected"] = np.zeros(0, np.float32)
+    no_points = Message("run", 0, arrays={**camera_only.arrays, **empty})
+    assert "data without lidar" in op.process(Frame("run", 0, 0, inputs={"frame": no_points}))["map"].meta["no_data"]
+
+    abs_map = Difference({"metric": "abs"}).process(Frame("run", 0, 0, inputs={"frame": camera_only}))["map"]
+    maps = {
+        "diff_abs": Message("run", 0, meta=abs_map.meta, arrays=abs_map.arrays),
+        "diff_lidar": Message("run", 0, meta=out.meta, arrays=out.arrays),
+    }
+    fusion = Fusion({"weights": {"abs": 0.5, "lidar": 0.5}})
+    fused = fusion.process(Frame("run", 0, 0, many={"maps": maps}))["fused"]
+    assert fused.meta["metrics"] == ["abs"]
+    np.testing.assert_array_equal(fused.arrays["map"], abs_map.arrays["map"])

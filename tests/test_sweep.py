@@ -13,7 +13,7 @@ import pytest
 from mcap.writer import CompressionType, Writer
 from sklearn.metrics import average_precision_score, roc_auc_score
 
-from replay.sweep import REFINE_MODES, Config, MaskSet, paper_weight_rows, sweep_log, weight_rows
+from replay.sweep import REFINE_MODES, Config, MaskSet, paper_weight_rows, sweep_log, weight_rows, weights_label
 from umad_common.cli import build_parser
 from umad_common.cli import main as umad_main
 from umad_common.commands.evaluate import every_and_layout
@@ -240,10 +240,17 @@ def test_weight_rows_are_the_papers_in_its_order_then_ours():
         [("ssim_shift" if m == "ssim" else m, w) for m, w in row.weights.items()] for row in with_ssim
     ]
     assert all(row.normalization == "minmax" for row in rows[:28])
-    assert [(row.weights, row.normalization) for row in rows[28:]] == [(row.weights, "robust") for row in rows[:28]]
-    assert [row.modes for row in (rows[0], rows[16], rows[17], rows[28])] == [
+    assert [(row.weights, row.normalization) for row in rows[28:56]] == [(row.weights, "robust") for row in rows[:28]]
+    assert rows[56].weights == {"lidar": 1} and len(rows) == 57 + 28  # the lidar alone, then with each min-max group
+    for group, with_lidar in zip(rows[:28], rows[57:], strict=True):
+        assert with_lidar.weights == {**{m: w * Fraction(2, 3) for m, w in group.weights.items()}, "lidar": third}
+        assert with_lidar.normalization == "minmax" and sum(with_lidar.weights.values()) == 1
+    assert weights_label(rows[57 + 14].weights) == "all (1/5) + lidar 1/3"
+    assert [row.modes for row in (rows[0], rows[16], rows[17], rows[28], rows[56], rows[57])] == [
         REFINE_MODES,
         REFINE_MODES,
+        ("mean", "mean_pixel"),
+        ("mean", "mean_pixel"),
         ("mean", "mean_pixel"),
         ("mean", "mean_pixel"),
     ]
@@ -266,7 +273,8 @@ def test_rows_and_settings(result):
         "felzenszwalb single",
     ]
     assert [s.label for s in result.headline_settings()][5:] == ["felzenszwalb mean_pixel"]
-    assert len(result.metrics) == 17 * 11 + (11 + 28) * 5 and not result.skipped_rows  # ours: no mask, 2 refinements
+    assert len(result.metrics) == 17 * 11 + (11 + 28) * 5  # ours: no mask, 2 refinements
+    assert result.skipped_rows == list(range(56, 85))  # the lidar rows: this log has no lidar map
     assert result.stats.frames == 12 and result.stats.duplicates == 2 and result.stats.bad == 6
     assert result.stats.truncated is None
     assert set(result.frames.values()) == {12}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 
 import numpy as np
 import pytest
@@ -545,7 +546,7 @@ def test_training_rollouts_start_from_consecutive_posterior_states_and_match_the
     assert prediction_targets(frames, train).flatten().tolist() == [2, 3, 3, 4, 4, 5]
     with torch.no_grad():
         result = model.observe(obs, actions)
-        predicted = open_loop_predictions(model, result, actions, obs.speed, train)
+        predicted = open_loop_predictions(model, result, actions, obs.speed, train).rgb
         assert predicted.shape == (2, 6, 3, model.config.image_height, model.config.image_width)
         start = State(result.states.h[:, 2], result.states.z[:, 2])  # the second rollout, on its own
         alone = model.imagine(start, actions[:, 3:5], speed=obs.speed[:, 2, 0]).rgb
@@ -582,7 +583,7 @@ def test_evaluation_predictions_are_the_prior_rolled_from_k_steps_back(tiny_benc
     posterior, _ = filter_drive(model, drive, chunk=5)  # chunked filtering = one pass
     actions = torch.from_numpy(drive.action)[None]  # (1, T, 2) the action taken after frame t
     with torch.no_grad():
-        for k, frames, predicted in predict_drive(model, drive, posterior, horizon=3, chunk=4):
+        for k, frames, predicted, _ in predict_drive(model, drive, posterior, horizon=3, chunk=4):
             assert list(frames) == list(range(k, len(drive)))
             for t in (k, len(drive) - 1):
                 start = State(posterior.h[t - k : t - k + 1], posterior.z[t - k : t - k + 1])
@@ -621,3 +622,141 @@ def test_readme_recipe_rebuilds_the_shipped_world_model():
     assert asdict(train) == shipped["train_config"]
     assert (epochs, seed, args.threads) == (shipped["epochs"], shipped["seed"], shipped["threads"])
     assert shipped["command"] == train_world_model.command_line(args) == shlex.join(words)
+
+
+# ---------------------------------------------------------------------------------------------
+# The lidar head: the lidar as the camera sees it, reconstructed and predicted
+
+LIDAR_HEAD = dict(lidar_head=True)
+
+
+def test_lidar_returns_land_where_the_camera_sees_them_nearest_first():
+    from umad_common.datasets.sensor_rig import SensorRig
+    from umad_common.models.world_model import lidar_returns, lidar_view
+
+    config = WorldModelConfig(**TINY, **LIDAR_HEAD)
+    assert config.lidar_view_shape == (64, 128)  # twice the 32 x 64 image: focal 64 view px at FOV 90
+    rig = SensorRig(64, 32, 90.0, (0.0, 0.0, 1.8), (0.0, 0.0, 1.8))
+    points = np.array(
+        [
+            [10.0, 0.0, 0.0, 1.0],  # straight ahead: the view's centre (row 32, column 64)
+            [5.0, 0.0, 0.0, 1.0],  # the same pixel, nearer: it wins
+            [-5.0, 0.0, 0.0, 1.0],  # behind the camera
+            [10.0, -20.0, 0.0, 1.0],  # 20 m to the right (AnoVox stores -y): outside the frustum
+            [10.0, 4.9, 2.0, 1.0],  # 4.9 m left, 2 m up: column 64 - 64 * 0.49, row 32 - 64 * 0.2
+        ],
+        np.float32,
+    )
+    returns = lidar_returns(points, config, rig)
+    assert returns.row.tolist() == [19, 32] and returns.col.tolist() == [32, 64]
+    assert returns.range.tolist() == pytest.approx([np.sqrt(128.01), 5.0])
+    view = lidar_view(returns, config)
+    assert view[32, 64] == 5.0 and np.count_nonzero(view) == 2
+    assert len(lidar_returns(None, config, rig).range) == 0
+
+
+def test_lidar_head_decodes_the_view_and_folds_like_the_image_decoder():
+    model = tiny_model(**LIDAR_HEAD)
+    obs, actions = random_observation(model.config, b=2, t=3)
+    with torch.no_grad():
+        result = model.observe(obs, actions, images=False)
+        assert result.rgb is None
+        states = State(result.states.h.flatten(0, 1), result.states.z.flatten(0, 1))
+        ranges = model.decode_lidar(states)
+        assert ranges.shape == (6, 64, 128) and ranges.min() > 0
+        model.fold_upsampling()
+        assert torch.allclose(model.decode_lidar(states), ranges, rtol=1e-4)
+    without = tiny_model()
+    assert not hasattr(without, "lidar_decoder")
+    with pytest.raises(ValueError, match="no lidar head"):
+        without.decode_lidar(states)
+
+
+def test_a_world_model_saved_before_the_lidar_head_loads_without_one(tmp_path):
+    path = save_world_model(tiny_model(), tmp_path / "old")
+    meta = tmp_path / "old.json"
+    saved = json.loads(meta.read_text())
+    for key in ("lidar_head", "lidar_view_scale", "lidar_decoder_channels"):
+        del saved["config"][key]  # as the files written before the head existed
+    meta.write_text(json.dumps(saved))
+    model, _ = load_world_model(path)
+    assert not model.config.lidar_head
+
+
+def test_fitting_a_lidar_head_leaves_every_other_weight_as_it_was(tiny_benchmark, tmp_path):
+    from umad_common.training.train_world_model import TrainConfig, fit_lidar_head
+
+    base = tmp_path / "base"
+    save_world_model(tiny_model(), base, {"train_config": {"sequence_length": 4, "batch_size": 2, "holdout": 1}})
+    fit = fit_lidar_head(tiny_benchmark, base, tmp_path / "with_head", epochs=2, seed=1, threads=1, command="fit")
+    assert len(fit["history"]) == 2 and all(np.isfinite(e["lidar_l1"]) for e in fit["history"])
+    assert fit["heldout_drives"] == ["Scenario_n2"]
+    old, _ = load_world_model(base)
+    new, record = load_world_model(tmp_path / "with_head")
+    assert new.config.lidar_head and record["lidar_head_fit"]["command"] == "fit"
+    assert record["train_config"] == asdict(TrainConfig(sequence_length=4, batch_size=2, holdout=1))
+    new_state = new.state_dict()
+    for key, tensor in old.state_dict().items():
+        assert torch.equal(new_state[key], tensor), key
+    assert any(key.startswith("lidar_decoder.") for key in new_state)
+    with pytest.raises(ValueError, match="already has a lidar head"):
+        fit_lidar_head(tiny_benchmark, tmp_path / "with_head", tmp_path / "again", epochs=1, threads=1)
+
+
+def test_joint_training_learns_the_lidar_view_and_the_evaluation_reports_its_range_error(tiny_benchmark, tmp_path):
+    from umad_common.training.evaluate_world_model import evaluate_world_model
+    from umad_common.training.train_world_model import TrainConfig, train_world_model
+
+    record = train_world_model(
+        tiny_benchmark,
+        tmp_path / "joint",
+        epochs=2,
+        seed=0,
+        threads=1,
+        model_config=WorldModelConfig(**TINY, **LIDAR_HEAD),
+        train_config=TrainConfig(sequence_length=4, batch_size=2, holdout=1),
+    )
+    history = record["history"]
+    assert all(np.isfinite(e["lidar_l1"]) and np.isfinite(e["pred_lidar_l1"]) for e in history)
+    model, saved = load_world_model(tmp_path / "joint")
+    figures = evaluate_world_model(model, tiny_benchmark, saved, horizon=2)
+    for key in ("recon_range_error_m", "pred1_range_error_m", "pred2_range_error_m"):
+        assert 0 <= figures[key] < 100, key
+    assert "recon_range_error_m" not in evaluate_world_model(tiny_model(), tiny_benchmark, saved, horizon=1)
+
+
+def test_predictor_sends_the_returns_and_the_range_its_lidar_view_expects(tmp_path):
+    from umad_common.datasets.sensor_rig import SensorRig
+    from umad_common.models.world_model import lidar_returns
+
+    model = tiny_model(**LIDAR_HEAD)
+    save_world_model(model, tmp_path / "wm")
+    predictor = WorldModelPredictor({"model": str(tmp_path / "wm.safetensors"), "horizon": 2})
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(2, 40, 500), rng.uniform(-20, 20, 500), rng.uniform(-1.8, 3, 500)])
+    points = np.column_stack([points, np.ones(500)]).astype(np.float32)
+    sensors = {
+        "camera": {"width": 64, "height": 32, "fov": 90.0, "location": [0, 0, 1.8], "rotation": [0, 0, 0]},
+        "lidar": {"location": [0, 0, 1.8], "rotation": [0, 0, 0]},
+    }
+    frame = Frame(
+        "run",
+        0,
+        0,
+        inputs={
+            "camera": Message("run", 0, arrays={"rgb": np.zeros((32, 64, 3), np.uint8)}),
+            "lidar": Message("run", 0, meta={"sensors": sensors}, arrays={"points": points}),
+            "ego": Message("run", 0, arrays={"ego": np.array([5.0, 0.5, 0.0, 0.0], np.float32)}),
+            "route": Message("run", 0, arrays={"route": np.zeros((192, 192), np.uint8)}),
+        },
+    )
+    arrays = predictor.process(frame)["frame"].arrays
+    returns = lidar_returns(points, model.config, SensorRig.from_sensors(sensors, "test"))
+    assert len(arrays["lidar_range"]) == len(returns.range) > 0
+    assert arrays["lidar_pixel"].dtype == np.int32
+    assert (arrays["lidar_pixel"] == np.column_stack([returns.row // 2, returns.col // 2])).all()
+    np.testing.assert_array_equal(arrays["lidar_range"], returns.range)
+    assert arrays["lidar_expected"].dtype == np.float32 and (arrays["lidar_expected"] > 0).all()
+    save_world_model(tiny_model(), tmp_path / "camera_only")
+    camera_only = WorldModelPredictor({"model": str(tmp_path / "camera_only.safetensors"), "horizon": 2})
+    assert "lidar_range" not in camera_only.process(frame)["frame"].arrays

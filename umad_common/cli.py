@@ -25,6 +25,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("replay",): ("umad_common.commands.replay", "republish a recorded MCAP log"),
     ("generate", "synthetic"): ("umad_common.commands.generate", "write the built-in synthetic driving benchmark"),
     ("train", "world-model"): ("umad_common.commands.train_world_model", "train the world model on normal drives"),
+    ("train", "lidar-head"): (
+        "umad_common.commands.train_lidar_head",
+        "give a trained world model a lidar head (its other weights unchanged)",
+    ),
     ("train", "features"): ("umad_common.commands.train_features", "train the label-free perceptual feature net"),
     ("train", "mnad"): ("umad_common.commands.train_mnad", "train the MNAD baseline"),
     ("train", "segmenter"): ("umad_common.commands.train_segmenter", "train the label-free segment net"),

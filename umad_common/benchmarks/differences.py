@@ -1,7 +1,8 @@
 """`umad bench differences`: frames/s of each difference metric at the world model's size, in-process.
 
 Every metric gets the same fixed world-model-shaped frame (192x128 target, reconstruction, three
-past predictions) and one torch thread, as one `difference` replica has; each is timed over the
+past predictions; for the lidar metric 7,500 returns, about what the built-in lidar lands in the
+camera's view) and one torch thread, as one `difference` replica has; each is timed over the
 same number of frames in one run, so the ratios to `abs` (the cheapest) are what to compare.
 """
 
@@ -12,7 +13,7 @@ import time
 import numpy as np
 
 from umad_common import ASSETS
-from umad_common.differences import METRICS, MetricOptions, build_metric, minmax
+from umad_common.differences import METRICS, MetricOptions, RangePairs, build_metric, minmax
 
 WARMUP_FRAMES = 2
 
@@ -26,20 +27,29 @@ def world_model_frame(height: int = 128, width: int = 192, horizon: int = 3, see
     return target, recon, preds.astype(np.float32), np.ones(horizon, np.uint8)
 
 
+def lidar_pairs(height: int = 128, width: int = 192, returns: int = 7500, seed: int = 0) -> RangePairs:
+    """Returns at random pixels, measured and expected ranges of the `frame` contract: random but fixed."""
+    rng = np.random.default_rng(seed)
+    pixel = np.stack([rng.integers(0, height, returns), rng.integers(0, width, returns)], axis=1).astype(np.int32)
+    expected = rng.uniform(3.0, 80.0, returns).astype(np.float32)
+    return RangePairs(pixel, (expected * rng.uniform(0.5, 1.2, returns)).astype(np.float32), expected)
+
+
 def bench_differences(frames: int = 20, height: int = 128, width: int = 192) -> dict:
     import torch
 
     torch.set_num_threads(1)
     arrays = world_model_frame(height, width)
+    lidar = lidar_pairs(height, width)
     options = MetricOptions(features=ASSETS / "feature_net.safetensors")
     fps: dict[str, float] = {}
     for name in METRICS:
         metric = build_metric(name, options)
         for _ in range(WARMUP_FRAMES):
-            minmax(metric(*arrays))
+            minmax(metric(*arrays, lidar=lidar))
         start = time.perf_counter()
         for _ in range(frames):
-            minmax(metric(*arrays))
+            minmax(metric(*arrays, lidar=lidar))
         fps[name] = frames / (time.perf_counter() - start)
     return {
         "frames": frames,

@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
 
     from operators.world_model import WorldModelPredictor
     from umad_common.datasets.anovox import label_free_scenario
-    from umad_common.differences import METRICS, CalibrationFitter, MetricOptions, build_metric
+    from umad_common.differences import METRICS, CalibrationFitter, MetricOptions, build_metric, range_pairs
     from umad_common.models.weights import weight_paths
 
     if args.frames < 1:
@@ -136,10 +136,13 @@ def run(args: argparse.Namespace) -> int:
             for frame in sensor_frames(scenario, limit):
                 arrays = predictor.process(frame)["frame"].arrays
                 target, recon, preds, valid = (arrays[k] for k in ("target", "recon", "preds", "pred_valid"))
+                lidar = range_pairs(arrays)
                 for metric in metrics:
                     if metric.needs_predictions and not valid.any():
                         continue  # run start: no prediction yet; its zeros are a rule, not a normal value
-                    fitter.add(metric.calibration_key, metric(target, recon, preds, valid))
+                    if metric.needs_lidar and lidar is None:
+                        continue  # a world model without a lidar head: no lidar scale
+                    fitter.add(metric.calibration_key, metric(target, recon, preds, valid, lidar=lidar))
                 frames += 1
                 progress.update(1)
     if frames == 0:

@@ -54,6 +54,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="share of training windows re-lit with a random gamma, brightness and colour cast (default 0)",
     )
+    parser.add_argument(
+        "--lidar-head",
+        action="store_true",
+        help="train a lidar head with the model: it decodes the lidar view the `lidar` difference compares "
+        "(`umad train lidar-head` adds one to a model trained without)",
+    )
     add_device_argument(parser)
 
 
@@ -82,6 +88,8 @@ def configs_of(args: argparse.Namespace):
         raise SystemExit(str(exc)) from None
     if args.frame_step is not None:
         model_config.frame_step = args.frame_step
+    if args.lidar_head:
+        model_config.lidar_head = True
     epochs = epochs if args.epochs is None else args.epochs
     seed = seed if args.seed is None else args.seed
     if epochs < 1:
@@ -96,6 +104,7 @@ def command_line(args: argparse.Namespace) -> str:
         if getattr(args, flag) is not None:
             words += ["--" + flag.replace("_", "-"), str(getattr(args, flag))]
     words += ["--threads", str(args.threads)] + (["--device", args.device] if args.device != "auto" else [])
+    words += ["--lidar-head"] if args.lidar_head else []
     words += ["--resume"] if args.resume else []
     return shlex.join(words)
 

@@ -16,11 +16,14 @@ from umad_common.differences.metrics import (
     AbsDifference,
     DifferenceInputError,
     DifferenceMetric,
+    LidarDifference,
     MetricOptions,
     MseDifference,
+    RangePairs,
     ShiftedSsimDifference,
     SsimDifference,
     TemporalDifference,
+    range_pairs,
     validate_frame,
 )
 from umad_common.differences.normalization import (
@@ -40,6 +43,7 @@ METRICS: dict[str, type[DifferenceMetric] | str] = {
     "ssim_shift": ShiftedSsimDifference,  # ours, not the paper's
     "perceptual": "umad_common.differences.perceptual:PerceptualDifference",  # torch: imported on use
     "temporal": TemporalDifference,
+    "lidar": LidarDifference,  # ours: the lidar against the world model's lidar view
 }
 
 
@@ -65,8 +69,10 @@ __all__ = [
     "CalibrationFitter",
     "DifferenceInputError",
     "DifferenceMetric",
+    "LidarDifference",
     "MetricOptions",
     "MseDifference",
+    "RangePairs",
     "ShiftedSsimDifference",
     "SsimDifference",
     "TemporalDifference",
@@ -76,6 +82,7 @@ __all__ = [
     "load_calibration",
     "metric_class",
     "minmax",
+    "range_pairs",
     "robust",
     "validate_frame",
 ]

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, NoReturn
+from typing import Any, ClassVar, NamedTuple, NoReturn
 
 import numpy as np
-from scipy.ndimage import correlate1d
+from scipy.ndimage import correlate1d, distance_transform_edt
 
 
 class DifferenceInputError(ValueError):
@@ -61,6 +61,48 @@ def validate_frame(target: np.ndarray, recon: np.ndarray, preds: np.ndarray, pre
     return h, w
 
 
+RANGE_PAIR_ARRAYS = ("lidar_pixel", "lidar_range", "lidar_expected")  # `RangePairs`' arrays in a `frame`
+
+
+class RangePairs(NamedTuple):
+    """Each lidar return in the camera's view (the world model's frame arrays of the same names): its
+    pixel, the range measured and the range the world model's lidar view expected there."""
+
+    pixel: np.ndarray  # (N, 2) int32 (row, column) in the target image
+    range: np.ndarray  # (N,) float32 metres measured
+    expected: np.ndarray  # (N,) float32 metres expected
+
+
+def range_pairs(arrays: dict[str, np.ndarray]) -> RangePairs | None:
+    """The lidar arrays of a world-model frame's `arrays`, or None where the frame has none (a world
+    model without a lidar head)."""
+    if not all(name in arrays for name in RANGE_PAIR_ARRAYS):
+        return None
+    return RangePairs(*(arrays[name] for name in RANGE_PAIR_ARRAYS))
+
+
+def validate_range_pairs(pairs: RangePairs, shape: tuple[int, int]) -> RangePairs:
+    """Check the lidar arrays against the `frame` contract and the image's (h, w).
+
+    Raises:
+        DifferenceInputError: naming the array, what was expected and what it got.
+    """
+    pixel, measured, expected = (np.asarray(a) for a in pairs)
+    n = len(measured)
+    if pixel.dtype != np.int32 or pixel.shape != (n, 2):
+        raise DifferenceInputError(
+            f"lidar_pixel: expected int32 array of shape ({n}, 2), got {pixel.dtype} {pixel.shape}"
+        )
+    for name, values in (("lidar_range", measured), ("lidar_expected", expected)):
+        if values.dtype != np.float32 or values.shape != (n,):
+            raise DifferenceInputError(
+                f"{name}: expected float32 array of shape ({n},), got {values.dtype} {values.shape}"
+            )
+    if n and (pixel.min() < 0 or pixel[:, 0].max() >= shape[0] or pixel[:, 1].max() >= shape[1]):
+        raise DifferenceInputError(f"lidar_pixel: a pixel lies outside the {shape[0]} x {shape[1]} image")
+    return RangePairs(pixel, measured, expected)
+
+
 class DifferenceMetric:
     """Base class: a raw per-pixel disagreement map from one world-model frame.
 
@@ -68,10 +110,13 @@ class DifferenceMetric:
         name: the registry name (`metric:` in graph.yaml) and the default calibration key.
         needs_predictions: the map is only meaningful when some `pred_valid` is 1 (calibration
             skips frames without predictions for such a metric).
+        needs_lidar: the map compares the lidar (`RangePairs`, passed to `compute` as `lidar`), not
+            the images.
     """
 
     name: ClassVar[str] = ""
     needs_predictions: ClassVar[bool] = False
+    needs_lidar: ClassVar[bool] = False
 
     @classmethod
     def from_options(cls, options: MetricOptions) -> DifferenceMetric:
@@ -91,10 +136,25 @@ class DifferenceMetric:
         """Extra metadata for this frame's output message (e.g. how many predictions were used)."""
         return {}
 
-    def __call__(self, target: np.ndarray, recon: np.ndarray, preds: np.ndarray, pred_valid: np.ndarray) -> np.ndarray:
-        """Validate the frame arrays, then compute the map."""
+    def __call__(
+        self,
+        target: np.ndarray,
+        recon: np.ndarray,
+        preds: np.ndarray,
+        pred_valid: np.ndarray,
+        lidar: RangePairs | None = None,
+    ) -> np.ndarray:
+        """Validate the frame arrays, then compute the map (a `needs_lidar` metric also gets `lidar`)."""
         h, w = validate_frame(target, recon, preds, pred_valid)
-        out = np.asarray(self.compute(target, recon, preds, pred_valid), dtype=np.float32)
+        if self.needs_lidar:
+            if lidar is None:
+                raise DifferenceInputError(
+                    f"{type(self).__name__}: no lidar returns; expected the frame's arrays {', '.join(RANGE_PAIR_ARRAYS)}"
+                )
+            extra = {"lidar": validate_range_pairs(lidar, (h, w))}
+        else:
+            extra = {}
+        out = np.asarray(self.compute(target, recon, preds, pred_valid, **extra), dtype=np.float32)
         if out.shape != (h, w):
             raise DifferenceInputError(f"{type(self).__name__}.compute: expected a ({h}, {w}) map, got {out.shape}")
         return out
@@ -247,3 +307,31 @@ class TemporalDifference(DifferenceMetric):
         if used == 0:
             notes["temporal_note"] = "no past prediction of this frame (run start): map is zeros"
         return notes
+
+
+class LidarDifference(DifferenceMetric):
+    """Δ_LIDAR (ours): how much of the range the world model expected something blocks.
+
+    Per lidar return in the camera's view, max(0, 1 - r / r̂) with r the range measured and r̂ the
+    range the model's reconstructed lidar view holds there: 0 where the return lies as far as expected
+    or farther, towards 1 where an object stands well before the road or wall the model expected. A
+    pixel takes the largest value of the returns in it; a pixel without a return takes the value of
+    the nearest pixel with one within `fill_px` (the returns land about a pixel apart at model
+    resolution), else 0 (the sky, above the lidar's beams). The light does not enter it.
+    """
+
+    name = "lidar"
+    needs_lidar = True
+    fill_px = 2.0
+
+    def compute(self, target, recon, preds, pred_valid, lidar: RangePairs):
+        h, w = target.shape[:2]
+        blocked = np.zeros((h, w), np.float32)
+        if len(lidar.range) == 0:
+            return blocked
+        share = np.maximum(0.0, 1.0 - lidar.range / np.maximum(lidar.expected, 1e-3)).astype(np.float32)
+        np.maximum.at(blocked, (lidar.pixel[:, 0], lidar.pixel[:, 1]), share)
+        seen = np.zeros((h, w), bool)
+        seen[lidar.pixel[:, 0], lidar.pixel[:, 1]] = True
+        distance, (rows, cols) = distance_transform_edt(~seen, return_indices=True)
+        return np.where(distance <= self.fill_px, blocked[rows, cols], 0.0).astype(np.float32)

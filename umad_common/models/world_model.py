@@ -37,6 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from umad_common.datasets.sensor_rig import SensorRig
 from umad_common.models.weights import config_from_dict, load_model, save_weights
 
 
@@ -81,9 +82,24 @@ class WorldModelConfig:
     frame_rate: float = 10.0  # dataset frames per second (AnoVox: 10 Hz); a model step is frame_step frames
     min_std: float = 0.1  # floor of the latent standard deviation
     frame_step: int = 1  # dataset frames per model step the model was trained with
+    lidar_head: bool = False  # decode the lidar as the camera sees it (`lidar_view`): the range of every pixel,
+    #   reconstructed and predicted like the image, which the `lidar` difference compares with the returns
+    #   (`umad train world-model --lidar-head` trains it with the model, `umad train lidar-head` adds one to a
+    #   trained model; models saved before the head existed have none)
+    lidar_view_scale: int = 2  # lidar view pixels per image pixel along each axis: at 2 (256 x 384 for the
+    #   default 128 x 192 image, focal 192 px) a 0.5 m object at 25 m spans 3.8 x 3.8 view pixels
+    lidar_decoder_channels: tuple[int, ...] = ()  # lidar decoder widths: [0] on the grid, then one per x2
+    #   upsampling up to the image size (len(image_channels) + 1 entries; empty: 32 on the grid, halving from the
+    #   second upsampling on, (32, 32, 16) by default); a last pixel shuffle reaches the view
 
     def __post_init__(self) -> None:
-        for name in ("image_channels", "decoder_channels", "lidar_channels", "route_channels"):
+        for name in (
+            "image_channels",
+            "decoder_channels",
+            "lidar_channels",
+            "route_channels",
+            "lidar_decoder_channels",
+        ):
             setattr(self, name, tuple(int(c) for c in getattr(self, name)))
         factor = 2 ** len(self.image_channels)
         if self.image_height % factor or self.image_width % factor:
@@ -95,6 +111,17 @@ class WorldModelConfig:
             raise ValueError(
                 f"decoder_channels {self.decoder_channels} has {len(self.decoder_channels)} entries; expected "
                 f"len(image_channels) + 1 = {len(self.image_channels) + 1} (the grid, then one per upsampling)"
+            )
+        if not self.lidar_decoder_channels:
+            self.lidar_decoder_channels = tuple(32 >> max(0, i - 1) for i in range(len(self.image_channels) + 1))
+        if self.lidar_head and len(self.lidar_decoder_channels) != len(self.image_channels) + 1:
+            raise ValueError(
+                f"lidar_decoder_channels {self.lidar_decoder_channels} has {len(self.lidar_decoder_channels)} entries; "
+                f"expected len(image_channels) + 1 = {len(self.image_channels) + 1} (the grid, then one per upsampling)"
+            )
+        if self.lidar_view_scale < 1:
+            raise ValueError(
+                f"lidar_view_scale {self.lidar_view_scale} must be at least 1 (view pixels per image pixel)"
             )
         lidar_factor = 2 ** len(self.lidar_channels)
         if self.lidar_rows % lidar_factor or self.lidar_width % lidar_factor:
@@ -113,6 +140,11 @@ class WorldModelConfig:
         """(rows, columns) of the latent grid."""
         stages = len(self.image_channels)
         return self.image_height >> stages, self.image_width >> stages
+
+    @property
+    def lidar_view_shape(self) -> tuple[int, int]:
+        """(rows, columns) of the lidar view: the camera's frustum at `lidar_view_scale` x the image size."""
+        return self.image_height * self.lidar_view_scale, self.image_width * self.lidar_view_scale
 
     @property
     def deter_dim(self) -> int:
@@ -183,6 +215,43 @@ def lidar_range_image(points: np.ndarray | None, config: WorldModelConfig) -> np
     values = np.stack([x[chosen], y[chosen], z[chosen], rng[chosen]]) / config.lidar_scale
     image.reshape(4, -1)[:, pixel[chosen]] = values
     return image
+
+
+class LidarReturns(NamedTuple):
+    """The lidar returns that land in the camera's view, nearest first per view pixel."""
+
+    row: np.ndarray  # (N,) int64 row in the lidar view (`WorldModelConfig.lidar_view_shape`)
+    col: np.ndarray  # (N,) int64 column
+    range: np.ndarray  # (N,) float32 metres from the lidar
+
+
+def lidar_returns(points: np.ndarray | None, config: WorldModelConfig, rig: SensorRig) -> LidarReturns:
+    """The (N, 4) AnoVox cloud's points in front of the camera that land in the lidar view, projected
+    with the drive's camera and mounts (`rig`); where several land in one view pixel the nearest wins."""
+    rows, cols = config.lidar_view_shape
+    if points is None or len(points) == 0:
+        empty = np.zeros(0, np.int64)
+        return LidarReturns(empty, empty, np.zeros(0, np.float32))
+    points = np.asarray(points, np.float32)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise ValueError(f"lidar points have shape {points.shape}; expected (N, 4)")
+    row, col, depth = rig.project(points[:, :3], (rows, cols))
+    rng = np.linalg.norm(points[:, :3], axis=1)
+    keep = (depth > 0.1) & (row >= 0) & (row < rows) & (col >= 0) & (col < cols) & np.isfinite(rng)
+    row, col, rng = row[keep], col[keep], rng[keep]
+    pixel = row * cols + col
+    order = np.lexsort((rng, pixel))  # by pixel, nearest first
+    first = np.ones(len(order), bool)
+    first[1:] = pixel[order][1:] != pixel[order][:-1]
+    chosen = order[first]
+    return LidarReturns(row[chosen], col[chosen], rng[chosen].astype(np.float32))
+
+
+def lidar_view(returns: LidarReturns, config: WorldModelConfig) -> np.ndarray:
+    """(rows, columns) float32 view of the returns' ranges in metres, 0 where none landed."""
+    view = np.zeros(config.lidar_view_shape, np.float32)
+    view[returns.row, returns.col] = returns.range
+    return view
 
 
 def action_of(throttle: float, brake: float, steer: float) -> np.ndarray:
@@ -393,12 +462,12 @@ class ObserveResult(NamedTuple):
     prior_std: torch.Tensor
     post_mean: torch.Tensor
     post_std: torch.Tensor
-    rgb: torch.Tensor  # (B, T, 3, H, W) reconstructions in [0, 1]
+    rgb: torch.Tensor | None  # (B, T, 3, H, W) reconstructions in [0, 1]; None when not decoded
 
 
 class ImagineResult(NamedTuple):
     states: State  # prior states, each (B, n, .)
-    rgb: torch.Tensor  # (B, n, 3, H, W) predicted frames
+    rgb: torch.Tensor | None  # (B, n, 3, H, W) predicted frames; None when not decoded
 
 
 # ---------------------------------------------------------------------------------------------
@@ -426,6 +495,14 @@ class WorldModel(nn.Module):
             *(ResBlock(c.decoder_channels[0]) for _ in range(c.res_blocks)),
             upsample_stack(c.decoder_channels, 3),
         )
+        if c.lidar_head:
+            self.lidar_decoder = nn.Sequential(
+                nn.Conv2d(c.deter_channels + c.stoch_channels, c.lidar_decoder_channels[0], 3, padding=1),
+                nn.SiLU(),
+                upsample_stack(c.lidar_decoder_channels, c.lidar_view_scale**2),
+                nn.PixelShuffle(c.lidar_view_scale),
+            )  # log range (metres) per view pixel
+            nn.init.constant_(self.lidar_decoder[2][-1].bias, math.log(20.0))
 
     # -- pieces ---------------------------------------------------------------------------------
 
@@ -497,17 +574,35 @@ class WorldModel(nn.Module):
         grid = torch.cat([self.as_grid(state.h), self.as_grid(state.z)], dim=1)
         return torch.sigmoid(self.image_decoder(grid))
 
+    def decode_lidar(self, state: State) -> torch.Tensor:
+        """States (N, .) -> the lidar view's range (N, rows, columns) in metres, as the state expects it."""
+        if not self.config.lidar_head:
+            raise ValueError("decode_lidar: this world model has no lidar head (config lidar_head is false)")
+        return torch.exp(self.decode_lidar_log(state).float())
+
+    def decode_lidar_log(self, state: State) -> torch.Tensor:
+        """States (N, .) -> log range (N, rows, columns): what training compares with the returns."""
+        grid = torch.cat([self.as_grid(state.h), self.as_grid(state.z)], dim=1)
+        return self.lidar_decoder(grid)[:, 0].clamp(-3.0, 6.0)
+
     def fold_upsampling(self) -> None:
         """For inference: the decoder's upsamplings and the convolutions after them as `UpsampledConv`
         (the world-model operator in 0.76x the CPU; its images within 3e-7 of the unfolded decoder's on
         a generated drive). The folded kernels are copies of the weights: neither train nor save the
         model after this."""
         self.image_decoder[-1] = fold_upsampling(self.image_decoder[-1])
+        if self.config.lidar_head:
+            self.lidar_decoder[2] = fold_upsampling(self.lidar_decoder[2])
 
     # -- sequences ------------------------------------------------------------------------------
 
     def observe(
-        self, obs: Observation, prev_actions: torch.Tensor, state: State | None = None, sample: bool = False
+        self,
+        obs: Observation,
+        prev_actions: torch.Tensor,
+        state: State | None = None,
+        sample: bool = False,
+        images: bool = True,
     ) -> ObserveResult:
         """Filter a sequence with the posterior and reconstruct each frame from its state.
 
@@ -516,6 +611,7 @@ class WorldModel(nn.Module):
             prev_actions: (B, T, 2) row t = the action taken after step t-1 (zeros at a drive start).
             state: the state before step 0 (default: a drive start).
             sample: draw z from the posterior (training) instead of taking its mean.
+            images: decode the reconstructions (False: the states only, `rgb` is None).
         """
         b, t = obs.rgb.shape[:2]
         embed = self.embed(obs)  # (B, T, E, rows, cols)
@@ -531,23 +627,31 @@ class WorldModel(nn.Module):
             hs.append(h)
             zs.append(z)
         states = State(torch.stack(hs, 1), torch.stack(zs, 1))  # (B, T, .)
-        rgb = self.decode(State(states.h.flatten(0, 1), states.z.flatten(0, 1)))
+        rgb = None
+        if images:
+            rgb = self.decode(State(states.h.flatten(0, 1), states.z.flatten(0, 1))).view(b, t, -1, *obs.rgb.shape[3:])
         return ObserveResult(
             states=states,
             prior_mean=torch.stack([m for m, _ in prior_stats], 1),
             prior_std=torch.stack([s for _, s in prior_stats], 1),
             post_mean=torch.stack([m for m, _ in post_stats], 1),
             post_std=torch.stack([s for _, s in post_stats], 1),
-            rgb=rgb.view(b, t, *rgb.shape[1:]),
+            rgb=rgb,
         )
 
     def imagine(
-        self, state: State, actions: torch.Tensor, n: int | None = None, speed: torch.Tensor | None = None
+        self,
+        state: State,
+        actions: torch.Tensor,
+        n: int | None = None,
+        speed: torch.Tensor | None = None,
+        images: bool = True,
     ) -> ImagineResult:
         """Roll the prior forward n steps from `state` (B, .) with actions (B, >=n, 2) (row k = the
         action after imagined step k-1, i.e. after `state` for k = 0) and decode the predicted frames.
         `speed` (B,): the model's speed input of the frame `state` was filtered on (needed with
-        `ground_flow`). The prior mean is used: predictions are deterministic."""
+        `ground_flow`). The prior mean is used: predictions are deterministic. `images`: decode the
+        predicted frames (False: the states only, `rgb` is None)."""
         n = actions.shape[1] if n is None else n
         if actions.shape[1] < n:
             raise ValueError(f"imagine: {actions.shape[1]} actions for {n} steps; expected at least {n}")
@@ -558,6 +662,8 @@ class WorldModel(nn.Module):
             hs.append(state.h)
             zs.append(state.z)
         states = State(torch.stack(hs, 1), torch.stack(zs, 1))
+        if not images:
+            return ImagineResult(states, None)
         rgb = self.decode(State(states.h.flatten(0, 1), states.z.flatten(0, 1)))
         return ImagineResult(states, rgb.view(state.h.shape[0], n, *rgb.shape[1:]))
 

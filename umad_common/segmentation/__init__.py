@@ -18,6 +18,7 @@ from typing import Any
 
 from umad_common.dataflow import Context
 from umad_common.dataflow.plugins import registered_class
+from umad_common.datasets.sensor_rig import SensorRig
 from umad_common.segmentation.base import (
     SegmenterInputError,
     SegmenterMethod,
@@ -25,7 +26,7 @@ from umad_common.segmentation.base import (
     labels_to_masks,
     masks_to_labels,
 )
-from umad_common.segmentation.geometry import Geometry, SensorRig
+from umad_common.segmentation.geometry import Geometry
 from umad_common.segmentation.image import Felzenszwalb, KMeansSegments, Slic
 from umad_common.segmentation.learned import GeometryLearned, Learned
 from umad_common.segmentation.sam import Sam

@@ -20,7 +20,6 @@ AnoVox clouds store (x, -y, z, intensity) in the lidar's frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
@@ -28,6 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from scipy import ndimage
 
 from umad_common.dataflow import Context, Frame, input_array
+from umad_common.datasets.sensor_rig import SensorRig, SensorSetupError, Triplet
 from umad_common.segmentation.base import (
     TUNED,
     SegmenterInputError,
@@ -36,55 +36,9 @@ from umad_common.segmentation.base import (
     sklearn_cluster,
 )
 
-Triplet = tuple[float, float, float]
 CROSS = ndimage.generate_binary_structure(2, 1)  # 4-connectivity
 SQUARE = ndimage.generate_binary_structure(2, 2)  # 8-connectivity
 SNAP_MIN_CONTRAST = 0.05  # snap_px: mean colours (RGB in [0, 1]) nearer than this do not tell object from background
-
-
-@dataclass(frozen=True)
-class SensorRig:
-    """A pinhole camera (principal point at the centre, horizontal field of view `fov` degrees, square
-    pixels) and a lidar, both mounted on the vehicle at `*_location` (CARLA axes, metres)."""
-
-    width: int
-    height: int
-    fov: float
-    camera_location: Triplet
-    lidar_location: Triplet
-
-    @classmethod
-    def from_sensors(cls, sensors: dict, where: str) -> SensorRig:
-        """From the replayer's `sensors` meta (see `umad_common.datasets.anovox.read_sensor_setup`)."""
-        camera, lidar = sensors.get("camera"), sensors.get("lidar")
-        if not camera or not lidar:
-            raise SegmenterInputError(f"{where}: sensor setup {sensors!r} lacks the camera or the lidar")
-        for name, sensor in (("camera", camera), ("lidar", lidar)):
-            if any(abs(float(a)) > 1e-6 for a in sensor.get("rotation", (0, 0, 0))):
-                raise SegmenterInputError(
-                    f"{where}: {name} rotation {sensor['rotation']} is not supported; expected (0, 0, 0) as in AnoVox"
-                )
-        return cls(
-            int(camera["width"]),
-            int(camera["height"]),
-            float(camera["fov"]),
-            tuple(float(v) for v in camera["location"]),
-            tuple(float(v) for v in lidar["location"]),
-        )
-
-    def project(self, points: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Pixel (row, col) in an image of `shape` (h, w) (the camera resized without a crop) and depth
-        along the camera's axis of every (x, -y, z) lidar point; depth <= 0 means behind the camera."""
-        h, w = shape
-        focal = self.width / 2 / np.tan(np.radians(self.fov) / 2)  # px at the camera's own size
-        offset = np.subtract(self.lidar_location, self.camera_location)  # lidar origin seen from the camera
-        forward = points[:, 0] + offset[0]
-        right = -points[:, 1] + offset[1]
-        up = points[:, 2] + offset[2]
-        safe = np.where(forward > 1e-6, forward, np.inf)
-        col = w / 2 + focal * (w / self.width) * right / safe
-        row = h / 2 - focal * (h / self.height) * up / safe
-        return np.floor(row).astype(np.int64), np.floor(col).astype(np.int64), forward
 
 
 def fit_ground(xyz: np.ndarray, iterations: int, tolerance: float, seed: int = 0) -> np.ndarray:
@@ -248,7 +202,10 @@ class Geometry(SegmenterMethod):
                 "`sensors` (the replayer sends the scenario's sensor_setup.json; the benchmark layout has none); "
                 "set option calibration: options or auto (defaults: AnoVox's 768x512, FOV 90, mounts (0, 0, 1.8))"
             )
-        return SensorRig.from_sensors(sensors, f"segmenter {frame.frame_id}")
+        try:
+            return SensorRig.from_sensors(sensors, f"segmenter {frame.frame_id}")
+        except SensorSetupError as exc:
+            raise SegmenterInputError(str(exc)) from None
 
     def objects(
         self, points: np.ndarray, rig: SensorRig, shape: tuple[int, int], rest: np.ndarray, image: np.ndarray

@@ -7,7 +7,8 @@ error ratio.
   from the drive's start; figures: PSNR of the reconstruction x̂_t and of the predictions
   x̂_{t|t-k} for k = 1..horizon (the prior rolled k steps forward from the posterior state of
   frame t-k with the actions actually taken and the speed of frame t-k, never having seen the
-  frames since).
+  frames since). With a lidar head, the same for the lidar view: the median absolute range error
+  (metres) over the lidar returns in the camera's view, of the reconstruction and of each prediction.
 - Anomalous drives (DATA/anomalous): mean |x − x̂_t| (over r, g, b) inside the anomaly mask against
   the same on road pixels outside it (semantic tag 1 road or 24 road line). The model never saw an
   anomaly, so it should not draw one: the ratio must be well above 1. Labels are resized
@@ -34,7 +35,7 @@ ROAD_TAGS = (1, 24)
 @torch.no_grad()
 def filter_drive(model: WorldModel, drive: DriveArrays, chunk: int = 32) -> tuple[State, np.ndarray]:
     """The posterior over a whole drive from its start: states (T, .) and reconstructions
-    (T, H, W, 3) float32 in [0, 1]."""
+    (T, H, W, 3) float32 in [0, 1] (`lidar_errors` decodes the lidar view from the states)."""
     hs, zs, recons = [], [], []
     state = None
     for start in range(0, len(drive), chunk):
@@ -50,9 +51,9 @@ def filter_drive(model: WorldModel, drive: DriveArrays, chunk: int = 32) -> tupl
 
 @torch.no_grad()
 def predict_drive(model: WorldModel, drive: DriveArrays, posterior: State, horizon: int, chunk: int = 32):
-    """Yields (k, frames, predicted) for k = 1..horizon: the frames t >= k of the drive and the
-    predictions x̂_{t|t-k} (len, H, W, 3), made by advancing the prior one step at a time with the
-    action taken after each frame, from the posterior state of frame t-k."""
+    """Yields (k, frames, predicted, states) for k = 1..horizon: the frames t >= k of the drive, the
+    predictions x̂_{t|t-k} (len, H, W, 3) and their prior states, made by advancing the prior one step
+    at a time with the action taken after each frame, from the posterior state of frame t-k."""
     actions = torch.from_numpy(drive.action)  # (T, 2) the action taken after frame t
     speed = torch.from_numpy(drive.speed) / model.config.speed_scale  # row j: the speed of origin frame j
     states = posterior
@@ -70,7 +71,20 @@ def predict_drive(model: WorldModel, drive: DriveArrays, posterior: State, horiz
             model.decode(State(states.h[i : i + chunk], states.z[i : i + chunk])).permute(0, 2, 3, 1).numpy()
             for i in range(0, len(h), chunk)
         ]
-        yield k, np.arange(k, len(drive)), np.concatenate(images)
+        yield k, np.arange(k, len(drive)), np.concatenate(images), states
+
+
+@torch.no_grad()
+def lidar_errors(model: WorldModel, states: State, views: np.ndarray, chunk: int = 32) -> np.ndarray:
+    """|r̂ - r| in metres of every lidar return in `views` (N, rows, columns), metres, 0 where none)
+    against the lidar view decoded from `states` (N, .)."""
+    errors = []
+    for i in range(0, len(views), chunk):
+        expected = model.decode_lidar(State(states.h[i : i + chunk], states.z[i : i + chunk])).numpy()
+        view = views[i : i + chunk].astype(np.float32)
+        hit = view > 0
+        errors.append(np.abs(expected[hit] - view[hit]))
+    return np.concatenate(errors) if errors else np.zeros(0, np.float32)
 
 
 def unseen_normal_drives(data: Path, record: dict) -> list[Path]:
@@ -112,15 +126,20 @@ def evaluate_world_model(
     squared = {k: 0.0 for k in range(horizon + 1)}  # k = 0: the reconstruction
     counts = {k: 0 for k in range(horizon + 1)}
     per_drive: dict[str, dict[str, float]] = {}
+    range_errors: dict[int, list[np.ndarray]] = {k: [] for k in range(horizon + 1)}
     for path in normal:
         drive = load_drive(label_free_scenario(path, config.frame_step), config)
         target = drive.rgb.astype(np.float32) / 255.0
         posterior, recon = filter_drive(model, drive)
         drive_squared = {0: float(((recon - target) ** 2).sum())}
         drive_counts = {0: target.size}
-        for k, frames, predicted in predict_drive(model, drive, posterior, horizon):
+        if config.lidar_head:
+            range_errors[0].append(lidar_errors(model, posterior, drive.view))
+        for k, frames, predicted, states in predict_drive(model, drive, posterior, horizon):
             drive_squared[k] = float(((predicted - target[frames]) ** 2).sum())
             drive_counts[k] = predicted.size
+            if config.lidar_head:
+                range_errors[k].append(lidar_errors(model, states, drive.view[frames]))
         for k in drive_squared:
             squared[k] += drive_squared[k]
             counts[k] += drive_counts[k]
@@ -129,6 +148,10 @@ def evaluate_world_model(
         figures["normal_drives"] = len(normal)
         figures["normal_frames"] = counts[0] // (config.image_height * config.image_width * 3)
         figures.update(psnr_figures(squared, counts))
+        if config.lidar_head:
+            for k, errors in range_errors.items():
+                name = "recon_range_error_m" if k == 0 else f"pred{k}_range_error_m"
+                figures[name] = float(np.median(np.concatenate(errors))) if errors else float("nan")
 
     anomalous_root = Path(data) / "anomalous"
     paths = find_scenarios(anomalous_root) if anomalous_root.is_dir() else []

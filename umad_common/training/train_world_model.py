@@ -22,9 +22,11 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from umad_common.datasets.sensor_rig import SensorRig
 from umad_common.models.device import bf16_supported
 from umad_common.models.weights import weight_paths
 from umad_common.models.world_model import (
+    ImagineResult,
     Observation,
     ObserveResult,
     State,
@@ -32,6 +34,8 @@ from umad_common.models.world_model import (
     WorldModelConfig,
     action_of,
     lidar_range_image,
+    lidar_returns,
+    lidar_view,
     resize_rgb,
     resize_route,
     save_world_model,
@@ -61,6 +65,8 @@ class TrainConfig:
     holdout: int = 1  # last normal drives (sorted) kept out of training for evaluation
     mirror: float = 0.0  # share of training windows mirrored left to right (camera, lidar, route and
     #   steering together): a drive the model never saw, at no cost in training time
+    lidar_weight: float = 1.0  # weight of the lidar view's loss (mean |log range error| over the returns, in
+    #   reconstructions and predictions) next to the image's; models without a lidar head ignore it
     relight: float = 0.0  # share of training windows re-lit: one random gamma, brightness and colour cast
     #   over all the window's frames (`relight_window`), for light the normal drives show rarely or never
     bf16: bool = True  # bfloat16 autocast and channels-last convolutions (2-3x faster on CPUs with
@@ -94,23 +100,35 @@ class DriveArrays:
     route: np.ndarray  # (T, R, R) uint8
     speed: np.ndarray  # (T,) float32 m/s
     action: np.ndarray  # (T, 2) float32 [throttle - brake, steer] taken after frame t
+    view: np.ndarray | None = None  # (T, rows, columns) float16 lidar view, metres (0: no return); None
+    #   for a model without a lidar head
 
     def __len__(self) -> int:
         return len(self.rgb)
 
 
 def load_drive(scenario, config: WorldModelConfig) -> DriveArrays:
-    """Read a scenario's model inputs (camera, lidar, ego, route) at model size."""
-    rgb, lidar, route, speed, action = [], [], [], [], []
+    """Read a scenario's model inputs (camera, lidar, ego, route) at model size, and with a lidar head
+    the lidar view its loss compares (projected with the drive's sensor setup, AnoVox's without one)."""
+    rig = SensorRig.from_sensors(scenario.sensors, scenario.name) if scenario.sensors else SensorRig.anovox()
+    rgb, lidar, route, speed, action, view = [], [], [], [], [], []
     for i in range(len(scenario)):
         frame = scenario[i]
         rgb.append(resize_rgb(frame.rgb, config))
         lidar.append(lidar_range_image(frame.lidar, config).astype(np.float16))
+        if config.lidar_head:
+            view.append(lidar_view(lidar_returns(frame.lidar, config, rig), config).astype(np.float16))
         route.append(resize_route(frame.route, config))
         speed.append(frame.ego.speed_mps)
         action.append(action_of(frame.ego.throttle, frame.ego.brake, frame.ego.steer))
     return DriveArrays(
-        scenario.name, np.stack(rgb), np.stack(lidar), np.stack(route), np.array(speed, np.float32), np.stack(action)
+        scenario.name,
+        np.stack(rgb),
+        np.stack(lidar),
+        np.stack(route),
+        np.array(speed, np.float32),
+        np.stack(action),
+        np.stack(view) if view else None,
     )
 
 
@@ -164,6 +182,18 @@ def observation_batch(
         speed=torch.from_numpy(np.stack(speed)).unsqueeze(2),
     )
     return obs, torch.from_numpy(np.stack(prev))
+
+
+def view_batch(
+    drives: list[DriveArrays], windows: list[tuple[int, int]], length: int, mirrored: list[bool] | None = None
+) -> torch.Tensor:
+    """The lidar views of the windows, (B, L, rows, columns) float metres (0: no return), mirrored
+    left to right where the window is (the view is the camera's frustum, so it flips with it)."""
+    views = []
+    for i, (d, start) in enumerate(windows):
+        view = drives[d].view[start : start + length]
+        views.append(view[..., ::-1] if mirrored is not None and mirrored[i] else view)
+    return torch.from_numpy(np.ascontiguousarray(np.stack(views))).float()
 
 
 def mirror_window(rgb: np.ndarray, lidar: np.ndarray, route: np.ndarray, actions: np.ndarray):
@@ -293,6 +323,34 @@ def world_model_loss(
     return terms
 
 
+def lidar_view_loss(log_range: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+    """Mean |log r̂ - log r| (about the relative range error) over the view pixels a return landed in;
+    (N, rows, columns) each, `view` in metres with 0 where there is no return."""
+    hit = view > 0
+    if not hit.any():
+        return log_range.float().sum() * 0.0
+    return (log_range.float()[hit] - torch.log(view[hit])).abs().mean()
+
+
+def lidar_terms(
+    model: WorldModel, result: ObserveResult, predicted: ImagineResult, views: torch.Tensor, train: TrainConfig
+) -> dict[str, torch.Tensor]:
+    """The lidar view's loss of the reconstructions and the open-loop predictions (`lidar_view_loss`),
+    and both weighted by `lidar_weight` as `lidar_loss`."""
+    b, t = views.shape[:2]
+    states = result.states
+    recon = model.decode_lidar_log(State(states.h.flatten(0, 1), states.z.flatten(0, 1)))
+    recon_l1 = lidar_view_loss(recon, views.flatten(0, 1))
+    imagined = predicted.states
+    pred = model.decode_lidar_log(State(imagined.h.flatten(0, 1), imagined.z.flatten(0, 1)))
+    pred_l1 = lidar_view_loss(pred, prediction_targets(views, train).flatten(0, 1))
+    return {
+        "lidar_l1": recon_l1.detach(),
+        "pred_lidar_l1": pred_l1.detach(),
+        "lidar_loss": train.lidar_weight * (recon_l1 + train.prediction_weight * pred_l1),
+    }
+
+
 def rollout_starts(length: int, train: TrainConfig) -> range:
     """Window indices of the posterior states the open-loop rollouts start from."""
     first = length - train.prediction_steps - train.prediction_starts
@@ -300,25 +358,33 @@ def rollout_starts(length: int, train: TrainConfig) -> range:
 
 
 def open_loop_predictions(
-    model: WorldModel, result: ObserveResult, prev_actions: torch.Tensor, speed: torch.Tensor, train: TrainConfig
-):
+    model: WorldModel,
+    result: ObserveResult,
+    prev_actions: torch.Tensor,
+    speed: torch.Tensor,
+    train: TrainConfig,
+    images: bool = True,
+) -> ImagineResult:
     """The prior rolled `prediction_steps` steps from each start state (`rollout_starts`) with the
-    actions taken and the speed (B, T, 1) of the start frame, all rollouts in one batch:
-    (B, starts x steps, 3, H, W), start by start."""
+    actions taken and the speed (B, T, 1) of the start frame, all rollouts in one batch: the frames
+    (B, starts x steps, 3, H, W), start by start, and the states (B x starts, steps, .)."""
     starts = rollout_starts(result.states.h.shape[1], train)
     steps = train.prediction_steps
     h = torch.stack([result.states.h[:, s] for s in starts], 1).flatten(0, 1)  # (B * starts, deter_dim)
     z = torch.stack([result.states.z[:, s] for s in starts], 1).flatten(0, 1)
     actions = torch.stack([prev_actions[:, s + 1 : s + 1 + steps] for s in starts], 1).flatten(0, 1)
     start_speed = torch.stack([speed[:, s, 0] for s in starts], 1).flatten()
-    rgb = model.imagine(State(h, z), actions, speed=start_speed).rgb  # (B * starts, steps, 3, H, W)
-    return rgb.view(prev_actions.shape[0], len(starts) * steps, *rgb.shape[2:])
+    imagined = model.imagine(State(h, z), actions, speed=start_speed, images=images)  # (B * starts, steps, ...)
+    if not images:
+        return imagined
+    rgb = imagined.rgb.view(prev_actions.shape[0], len(starts) * steps, *imagined.rgb.shape[2:])
+    return ImagineResult(imagined.states, rgb)
 
 
-def prediction_targets(rgb: torch.Tensor, train: TrainConfig) -> torch.Tensor:
-    """The frames `open_loop_predictions` predicts, in its order, from (B, T, 3, H, W)."""
+def prediction_targets(frames: torch.Tensor, train: TrainConfig) -> torch.Tensor:
+    """The frames `open_loop_predictions` predicts, in its order, from (B, T, ...) (images or lidar views)."""
     steps = train.prediction_steps
-    return torch.cat([rgb[:, s + 1 : s + 1 + steps] for s in rollout_starts(rgb.shape[1], train)], 1)
+    return torch.cat([frames[:, s + 1 : s + 1 + steps] for s in rollout_starts(frames.shape[1], train)], 1)
 
 
 def psnr(mse: float) -> float:
@@ -389,6 +455,7 @@ def train_world_model(
 
     if first_epoch >= epochs:
         raise ValueError(f"{checkpoint_path}: already trained {first_epoch} epochs; ask for more than {epochs}")
+    lidar = model_config.lidar_head
     model.train()
     bar = tqdm(total=total_steps, initial=first_epoch * steps_per_epoch, desc="world model", unit="step")
     for epoch in range(first_epoch, epochs):
@@ -396,6 +463,8 @@ def train_world_model(
         torch.manual_seed(seed * 100_003 + epoch)
         windows = epoch_windows(drives, train.sequence_length, rng)
         sums = {"loss": 0.0, "rgb_l1": 0.0, "rgb_ssim": 0.0, "rgb_mse": 0.0, "pred_mse": 0.0, "kl": 0.0}
+        if lidar:
+            sums.update(lidar_l1=0.0, pred_lidar_l1=0.0)
         for step in range(steps_per_epoch):
             batch = windows[step * train.batch_size : (step + 1) * train.batch_size]
             mirrored = list(rng.random(len(batch)) < train.mirror)
@@ -407,7 +476,12 @@ def train_world_model(
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
                 result = model.observe(obs, prev_actions, sample=train.sample_posterior)
                 predicted = open_loop_predictions(model, result, prev_actions, obs.speed, train)
-            terms = world_model_loss(result, predicted, obs, train)
+                views = view_batch(drives, batch, train.sequence_length, mirrored).to(device) if lidar else None
+                lidar_part = lidar_terms(model, result, predicted, views, train) if lidar else {}
+            terms = world_model_loss(result, predicted.rgb, obs, train)
+            if lidar_part:
+                terms.update(lidar_part)
+                terms["loss"] = terms["loss"] + terms.pop("lidar_loss")
             optimizer.zero_grad(set_to_none=True)
             terms["loss"].backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), train.grad_clip)
@@ -457,3 +531,91 @@ def train_world_model(
         )
     bar.close()
     return record
+
+
+def fit_lidar_head(
+    data: Path,
+    world_model: Path,
+    out: Path,
+    epochs: int = 8,
+    seed: int = 0,
+    threads: int = 2,
+    train_config: TrainConfig | None = None,
+    command: str | None = None,
+    device: str | torch.device = "cpu",
+) -> dict:
+    """Give a trained world model a lidar head: the model's other weights stay as they are (frozen, so
+    its images and every camera map stay bit for bit the same) and the head learns to decode the lidar
+    view from the states the model filters and predicts on the normal drives under `data`, with the
+    loss joint training uses (`lidar_terms`). Writes OUT.safetensors + OUT.json (the model's record,
+    plus `lidar_head_fit`: this fit's command, data, epochs and loss history)."""
+    from umad_common.models.world_model import load_world_model
+
+    torch.set_num_threads(threads)
+    device = torch.device(device)
+    base, record = load_world_model(world_model, "cpu")
+    if base.config.lidar_head:
+        raise ValueError(f"{world_model}: already has a lidar head; expected a world model without one")
+    config = WorldModelConfig.from_dict({**base.config.to_dict(), "lidar_head": True})
+    train = train_config or TrainConfig(**record.get("train_config", {}))
+    torch.manual_seed(seed)
+    model = WorldModel(config)
+    missing, unexpected = model.load_state_dict(base.state_dict(), strict=False)
+    if unexpected or any(not key.startswith("lidar_decoder.") for key in missing):
+        raise ValueError(
+            f"{world_model}: tensors do not fit the model with a lidar head ({missing[:3]}, {unexpected[:3]})"
+        )
+    model.to(device).eval()
+    bf16 = train.bf16 and bf16_supported(device)
+    model.requires_grad_(False)
+    model.lidar_decoder.requires_grad_(True)
+    optimizer = torch.optim.Adam(model.lidar_decoder.parameters(), lr=train.learning_rate)
+
+    started = time.perf_counter()
+    drives, heldout = load_normal_drives(Path(data), config, train.holdout)
+    steps_per_epoch = guaranteed_windows(drives, train.sequence_length) // train.batch_size
+    if steps_per_epoch == 0:
+        raise ValueError(f"{data}: fewer than {train.batch_size} windows of {train.sequence_length} frames")
+    history: list[dict] = []
+    bar = tqdm(total=steps_per_epoch * epochs, desc="lidar head", unit="step")
+    for epoch in range(epochs):
+        rng = np.random.default_rng([seed, epoch])
+        windows = epoch_windows(drives, train.sequence_length, rng)
+        sums = {"lidar_l1": 0.0, "pred_lidar_l1": 0.0}
+        for step in range(steps_per_epoch):
+            batch = windows[step * train.batch_size : (step + 1) * train.batch_size]
+            obs, prev_actions = observation_batch(drives, batch, train.sequence_length)
+            obs, prev_actions = scale_speed(obs, config).to(device), prev_actions.to(device)
+            views = view_batch(drives, batch, train.sequence_length).to(device)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+                with torch.no_grad():
+                    result = model.observe(obs, prev_actions, images=False)
+                    predicted = open_loop_predictions(model, result, prev_actions, obs.speed, train, images=False)
+                terms = lidar_terms(model, result, predicted, views, train)
+            optimizer.zero_grad(set_to_none=True)
+            terms["lidar_loss"].backward()
+            optimizer.step()
+            for key in sums:
+                sums[key] += float(terms[key])
+            bar.update(1)
+            bar.set_postfix(epoch=epoch + 1, lidar_l1=f"{float(terms['lidar_l1']):.4f}")
+        history.append({"epoch": epoch + 1, **{key: value / steps_per_epoch for key, value in sums.items()}})
+        fit = {
+            "command": command,
+            "data": str(data),
+            "base_model": str(world_model),
+            "seed": seed,
+            "epochs": epoch + 1,
+            "threads": threads,
+            "device": str(device),
+            "training_drives": [d.name for d in drives],
+            "heldout_drives": heldout,
+            "train_seconds": round(time.perf_counter() - started, 1),
+            "history": history,
+        }
+        base_record = {key: value for key, value in record.items() if key != "config"}
+        base_record["train_config"] = asdict(train)  # the recipe's fields of today, lidar_weight among them
+        save_world_model(model.cpu(), out, {**base_record, "lidar_head_fit": fit})
+        model.to(device)
+    bar.close()
+    return fit
