@@ -433,5 +433,9 @@ def test_cli_writes_the_light_stress_set(tmp_path):
         "clear_noon",
     ]
     assert (tmp_path / "preview.png").is_file()
+    from umad_common.datasets.anovox import scenario_weathers
+
+    weathers = scenario_weathers(find_scenarios(tmp_path / "anomalous")[0])  # what per_scenario.md names
+    assert weathers == {f"Scenario_{s['scenario_id']}": s["weather"] for s in config["scenarios"]}
     with pytest.raises(SystemExit):
         main(["generate", "synthetic", str(tmp_path / "x"), "--stress", "--stress-light"])
