@@ -79,9 +79,9 @@ class GroundShadowMap:
             cv2.fillConvexPoly(distance, cells, metres, cv2.LINE_8, coarse_shift)
         self.sharp = occluded.astype(np.float32) / 255
         coarse = cv2.resize(self.sharp, distance.shape[::-1], interpolation=cv2.INTER_AREA)
-        self.soft = cv2.GaussianBlur(coarse, (0, 0), PENUMBRA_FAR_SIGMA_M / (MAP_CELL_M * COARSE))
+        soft = cv2.GaussianBlur(coarse, (0, 0), PENUMBRA_FAR_SIGMA_M / (MAP_CELL_M * COARSE))
         reach = 2 * int(np.ceil(3 * PENUMBRA_FAR_SIGMA_M / (MAP_CELL_M * COARSE))) + 1  # the soft edge lies outside
-        self.distance = cv2.dilate(distance, np.ones((reach, reach), np.uint8))
+        self.soft_and_distance = np.dstack([soft, cv2.dilate(distance, np.ones((reach, reach), np.uint8))])
 
     def _cells(self, xy: np.ndarray) -> np.ndarray:
         """World ground positions (..., 2) -> fractional map (column, row)."""
@@ -119,16 +119,17 @@ class GroundShadowMap:
         lifted = points[:, :2] - (points[:, 2] / self.sun[2])[:, None] * self.sun[:2]  # same sun ray, at z = 0
         cells = self._cells(lifted).astype(np.float32)
         sharp = _sample(self.sharp, cells)
-        soft = _sample(self.soft, (cells + 0.5) / COARSE - 0.5)
-        weight = np.clip(_sample(self.distance, (cells + 0.5) / COARSE - 0.5) / PENUMBRA_FAR_M, 0.0, 1.0)
+        soft, distance = _sample(self.soft_and_distance, (cells + 0.5) / COARSE - 0.5).T
+        weight = np.clip(distance / PENUMBRA_FAR_M, 0.0, 1.0)
         shadow = sharp * (1 - weight) + soft * weight
         ahead = (points[:, :2] - self.origin) @ self.to_ego[0]
         fade = np.clip((MAP_AHEAD_M[1] - ahead) / (MAP_AHEAD_M[1] - FADE_FROM_M), 0.0, 1.0)
-        return shadow.astype(np.float64) * fade
+        return shadow * fade
 
 
 def _sample(image: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Bilinear samples of a float32 raster at fractional (column, row) cells (N, 2); 0 outside."""
+    """Bilinear samples of a float32 raster (rows, cols[, channels]) at fractional (column, row)
+    cells (N, 2): (N[, channels]), 0 outside."""
     count = len(cells)
     rows = max(-(-count // 512), 1)
     maps = np.full((2, rows * 512), -2.0, np.float32)  # cv2.remap wants 2-D maps under 32767 rows
@@ -137,4 +138,4 @@ def _sample(image: np.ndarray, cells: np.ndarray) -> np.ndarray:
         image, maps[0].reshape(rows, 512), maps[1].reshape(rows, 512), cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_CONSTANT, borderValue=0.0,
     )  # fmt: skip
-    return out.ravel()[:count].astype(np.float64)
+    return out.reshape(rows * 512, *image.shape[2:])[:count].astype(np.float64)
