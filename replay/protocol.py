@@ -18,6 +18,7 @@ import yaml
 from umad_common import recorded_path
 from umad_common.dataflow.assignments import merge_params, parse_assignment
 from umad_common.dataflow.operator import load_operator_class
+from umad_common.datasets.anovox import scenario_weathers
 
 LABEL_RESIZE = "nearest"  # labels are resized to the score maps' size, never the maps to the labels
 
@@ -65,7 +66,9 @@ def operator_params(graph: dict[str, Any], sets: dict[str, dict[str, Any]]) -> d
 
 
 def run_protocol(metadata: dict[str, str], map_notes: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """The run's data, frame sampling, models and perceptual network from the log's `umad` metadata.
+    """The run's data, frame sampling, models and perceptual network from the log's `umad` metadata,
+    and each drive's weather where the data folder's scenario config names it (read from the data
+    folder now, so older logs get it too while their data is at hand).
 
     Args:
         metadata: the log's metadata record (`graph` YAML text, `base_dir`, `sets` as a JSON list of
@@ -91,6 +94,7 @@ def run_protocol(metadata: dict[str, str], map_notes: dict[str, dict[str, Any]])
             protocol.setdefault("segmenters", {})[op_id] = segmenter_record(params, resolve)
         elif kind == "replayer":
             protocol["data"] = recorded_path(resolve(params["source"]))
+            protocol["scenario_weather"] = scenario_weathers(resolve(params["source"]))  # {} for data without it
             protocol["every"] = params.get("every", 1) * params.get("score_every", 1)  # frames per scored frame
             protocol["world_model_every"] = params.get("every", 1)  # frames per frame the world model sees
         elif kind == "world_model":

@@ -328,13 +328,13 @@ def test_cli_writes_benchmark_and_preview(tmp_path):
 
 
 def test_stress_plans_cover_the_weathers_unevenly_and_leave_the_default_plans_alone():
-    from umad_common.datasets.synthetic.generator import STRESS_SEED, stress_coverage
+    from umad_common.datasets.synthetic.generator import STRESS, stress_coverage
 
-    plans = plan_benchmark(12, 8, STRESS_SEED, stress=True)
+    plans = plan_benchmark(12, 8, STRESS.seed, stress=STRESS)
     normal = [p.weather for p in plans if p.split == "normal"]
     anomalous = [p for p in plans if p.split == "anomalous"]
     counts = {w: normal.count(w) for w in WEATHER_NAMES}
-    assert counts == stress_coverage(12, 8)["normal"]
+    assert counts == stress_coverage(STRESS, 12, 8)["normal"]
     assert counts["clear_noon"] == 0 and counts["dusk"] == 1 and counts["night"] == 1 and max(counts.values()) >= 4
     rare = {w for w, n in counts.items() if n <= 1}
     assert sum(p.weather in rare for p in anomalous) > len(anomalous) / 2  # mostly under rare presets...
@@ -372,3 +372,70 @@ def test_cli_writes_the_stress_set(tmp_path):
     assert config["set"] == "stress" and config["seed"] == 30 and config["wait_m"] == [20.0, 40.0]
     assert [s["weather"] for s in config["scenarios"]] == ["cloudy", "fog", "clear_noon"]
     assert len(find_scenarios(tmp_path / "normal")) == 2 and len(find_scenarios(tmp_path / "anomalous")) == 1
+
+
+def test_light_stress_plans_show_clear_light_rarely_in_normal_drives_and_always_in_anomalous_ones():
+    from umad_common.datasets.synthetic.generator import STRESS, STRESS_LIGHT, stress_coverage
+
+    clear = {"clear_noon", "sunset"}
+    plans = plan_benchmark(16, 8, STRESS_LIGHT.seed, stress=STRESS_LIGHT)
+    normal = [p.weather for p in plans if p.split == "normal"]
+    anomalous = [p for p in plans if p.split == "anomalous"]
+    assert sum(w in clear for w in normal) == 3 and {"clear_noon", "sunset"} <= set(normal)
+    assert len(set(normal) - clear) >= 5  # cloudy, fog, rain, dusk, night
+    assert len(anomalous) == 8 and all(p.weather in clear and p.anomaly is not None for p in anomalous)
+    assert {p.weather for p in anomalous} == clear
+    assert stress_coverage(STRESS_LIGHT, 16, 8)["normal"] == {w: normal.count(w) for w in (*WEATHER_NAMES, "sunset")}
+    assert "sunset" not in stress_coverage(STRESS, 12, 8)["normal"]  # the stress set's config stays as it was
+    for seed in (STRESS_LIGHT.seed, 44):  # the default and the validation seed give other drives than every other set
+        ids = {p.scenario_id for p in plan_benchmark(16, 8, seed, stress=STRESS_LIGHT)}
+        assert not ids & {p.scenario_id for p in plan_benchmark(12, 6, 0)}
+        assert not ids & {p.scenario_id for p in plan_benchmark(0, 12, 1)}
+        assert not ids & {p.scenario_id for p in plan_benchmark(12, 8, STRESS.seed, stress=STRESS)}
+
+
+def test_light_stress_drive_waits_before_the_object_facing_the_sun():
+    from umad_common.datasets.synthetic.generator import STRESS_WAIT_M
+    from umad_common.datasets.synthetic.scenario import SUN_AHEAD_DEG
+
+    for seed, category, weather in ((4, "home", "sunset"), (5, "special", "clear_noon")):
+        scenario = SyntheticScenario(
+            seed, 200, category, weather, camera=SMALL, wait_at=STRESS_WAIT_M, direct_sunlight=True, sun_ahead=True
+        )
+        track, anomaly = scenario.track, scenario.anomaly
+        still = np.flatnonzero(track.speed < 0.05)
+        assert still.size and np.all(track.speed[still[0] :] < 0.05), "the ego must wait to the end of the drive"
+        gap = anomaly.s - max(anomaly.shape.size[:2]) / 2 - track.s[-1]
+        assert 19.0 <= gap <= 41.0, f"seed {seed}: the ego stops {gap:.1f} m before the object, expected 20-40"
+        sun = scenario.renderer.sun
+        off = np.degrees(np.abs(np.angle(np.exp(1j * (np.arctan2(sun[1], sun[0]) - scenario.pose(199)[2])))))
+        assert SUN_AHEAD_DEG[0] - 1e-6 <= off <= SUN_AHEAD_DEG[1] + 1e-6, f"seed {seed}: sun {off:.1f} deg off ahead"
+        assert scenario.renderer.direct_sunlight
+
+
+def test_cli_writes_the_light_stress_set(tmp_path):
+    import json
+
+    from umad_common.cli import main
+
+    args = ["generate", "synthetic", str(tmp_path), "--stress-light", "--normal", "5", "--anomalous", "2"]
+    assert main([*args, "--frames", "2", "--size", "64x48", "--preview"]) == 0
+    config = json.loads((tmp_path / "Scenario_Configuration_Files" / "scenario_config_map_Synthetic.json").read_text())
+    assert config["set"] == "stress_light" and config["seed"] == 43 and config["wait_m"] == [20.0, 40.0]
+    assert config["direct_sunlight"] is True and config["weather_drives"]["anomalous"]["sunset"] == 1
+    assert [s["weather"] for s in config["scenarios"]] == [
+        "cloudy",
+        "fog",
+        "rain",
+        "dusk",
+        "clear_noon",
+        "sunset",
+        "clear_noon",
+    ]
+    assert (tmp_path / "preview.png").is_file()
+    from umad_common.datasets.anovox import scenario_weathers
+
+    weathers = scenario_weathers(find_scenarios(tmp_path / "anomalous")[0])  # what per_scenario.md names
+    assert weathers == {f"Scenario_{s['scenario_id']}": s["weather"] for s in config["scenarios"]}
+    with pytest.raises(SystemExit):
+        main(["generate", "synthetic", str(tmp_path / "x"), "--stress", "--stress-light"])

@@ -466,13 +466,13 @@ def test_report_files(result, log_and_truth, tmp_path):
     best_ap = max(r["AP"] for r in summary["rows"] + [summary["baseline"]])
     assert f"**{100 * best_ap:.2f}**" in table
     scenarios = (out / "per_scenario.md").read_text()
-    assert "| Scenario_a | animal |" in scenarios and "| Scenario_b | home |" in scenarios
+    assert "| Scenario_a | animal | ? |" in scenarios and "| Scenario_b | home | ? |" in scenarios  # no config here
     with open(out / "per_scenario.csv") as f:
         per_setting: dict[str, dict[str, float]] = {}
         for line in csv.DictReader(f):
             per_setting.setdefault(line["setting"], {})[line["scenario"]] = float(line["AUROC"])
     weakest = next(line for line in scenarios.splitlines() if line.startswith("| weakest scenario |"))
-    cells = [c.strip() for c in weakest.strip("|").split("|")][2:]
+    cells = [c.strip() for c in weakest.strip("|").split("|")][3:]
     assert len(cells) == len(per_setting)
     # the CSV lists the settings in the table's order
     for cell, aurocs in zip(cells, per_setting.values(), strict=True):
@@ -481,6 +481,35 @@ def test_report_files(result, log_and_truth, tmp_path):
         assert cell == f"AUROC {100 * aurocs[run]:.2f} ({run.removeprefix('Scenario_')}), {below} of 2 below"
     for name in ("table.md", "per_scenario.md", "components.md"):  # each table file names the PD network
         assert "PD network: label-free feature net features.safetensors" in (out / name).read_text(), name
+
+
+def test_per_scenario_names_each_drives_weather(result, log_and_truth, tmp_path):
+    from dataclasses import replace
+
+    lit = replace(result, protocol={**result.protocol, "scenario_weather": {"Scenario_a": "sunset"}})
+    out = write_report(lit, tmp_path / "report", log_and_truth[0]).parent
+    scenarios = (out / "per_scenario.md").read_text()
+    assert "| scenario | anomaly | weather |" in scenarios
+    assert "| Scenario_a | animal | sunset |" in scenarios and "| Scenario_b | home | ? |" in scenarios
+    with open(out / "per_scenario.csv") as f:
+        lines = list(csv.DictReader(f))
+    assert {(line["scenario"], line["weather"]) for line in lines} == {("Scenario_a", "sunset"), ("Scenario_b", "?")}
+    weakest = next(line for line in scenarios.splitlines() if line.startswith("| weakest scenario |"))
+    for cell in [c.strip() for c in weakest.strip("|").split("|")][3:]:
+        assert cell == "" or "(a, sunset)" in cell or "(b)" in cell, cell
+
+
+def test_protocol_reads_each_drives_weather_from_the_data_folder(tmp_path):
+    from replay.protocol import run_protocol
+
+    config = tmp_path / "data" / "Scenario_Configuration_Files"
+    config.mkdir(parents=True)
+    (tmp_path / "data" / "anomalous").mkdir()
+    entries = [{"scenario_id": "a", "weather": "sunset"}, {"scenario_id": "b", "weather": {"sun_altitude": 10}}]
+    (config / "scenario_config_map_Synthetic.json").write_text(json.dumps({"scenarios": entries}))
+    metadata = {"graph": GRAPH, "base_dir": str(tmp_path), "version": "test"}
+    assert run_protocol(metadata, {})["scenario_weather"] == {"Scenario_a": "sunset"}  # b names no preset
+    assert run_protocol({**metadata, "base_dir": str(tmp_path / "elsewhere")}, {})["scenario_weather"] == {}
 
 
 def test_protocol_is_read_from_the_log_and_the_model_records(result, log_and_truth, tmp_path):

@@ -5,7 +5,8 @@ one anomalous object on the road each (evaluation data). Same arguments, same by
 
 `--stress` writes the stress set instead (its own default seed and drive counts, never part of the
 default benchmark): uneven weather coverage in the normal drives, an ego waiting 20-40 m before the
-object under rarely seen light in the anomalous ones.
+object under rarely seen light in the anomalous ones. `--stress-light` writes the light stress set:
+the sun's cast shadows and lane glare, clear light in few normal drives and in every anomalous one.
 """
 
 from __future__ import annotations
@@ -38,22 +39,38 @@ STRESS_HELP = (
     "night cloudy). Anomalous drives cycle clear_noon dusk fog night clear_noon dusk rain cloudy; in "
     "each the ego brakes early, stops 20-40 m before the object and waits there to the end"
 )
+STRESS_LIGHT_HELP = (
+    "write the light stress set instead (defaults: --normal 16 --anomalous 8 --seed 43; choose on "
+    "--seed 44, which umad eval never evaluates). The sun casts soft shadows of buildings, "
+    "trees, poles and cars on the road and sidewalk, and lane paint glares toward a low sun, in every "
+    "drive whose sun shows. Normal drives, per 16: cloudy 5, fog 3, rain 2, dusk 2, night 1, clear_noon 2, "
+    "sunset 1 (clear light in 3). Anomalous drives alternate sunset and clear_noon, the sun ahead; in "
+    "each the ego stops 20-40 m before the object and waits there to the end"
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("out", type=Path, help="output folder (must not already hold normal/ or anomalous/ scenarios)")
     parser.add_argument(
-        "--normal", type=int, default=None, help="number of normal drives (default 12: 2 per weather; --stress: 12)"
+        "--normal",
+        type=int,
+        default=None,
+        help="number of normal drives (default 12: 2 per weather; --stress: 12; --stress-light: 16)",
     )
     parser.add_argument(
         "--anomalous", type=int, default=None, help="number of drives with an anomaly (default 6; --stress: 8)"
     )
     parser.add_argument("--frames", type=int, default=200, help="frames per drive at 10 Hz (default 200)")
     parser.add_argument(
-        "--seed", type=int, default=None, help="master seed; same seed, same bytes (default 0; --stress: 30)"
+        "--seed",
+        type=int,
+        default=None,
+        help="master seed; same seed, same bytes (default 0; --stress: 30; --stress-light: 43)",
     )
     parser.add_argument("--size", type=parse_size, default=(384, 256), help="camera image size WxH (default 384x256)")
-    parser.add_argument("--stress", action="store_true", help=STRESS_HELP)
+    sets = parser.add_mutually_exclusive_group()
+    sets.add_argument("--stress", action="store_true", help=STRESS_HELP)
+    sets.add_argument("--stress-light", action="store_true", help=STRESS_LIGHT_HELP)
     parser.add_argument("--preview", action="store_true", help="also write OUT/preview.png, a contact sheet")
     parser.add_argument(
         "--workers",
@@ -66,9 +83,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from umad_common.datasets.synthetic.generator import STRESS_SEED, generate_benchmark, write_preview
+    from umad_common.datasets.synthetic.generator import STRESS, STRESS_LIGHT, generate_benchmark, write_preview
 
-    defaults = {"normal": 12, "anomalous": 8 if args.stress else 6, "seed": STRESS_SEED if args.stress else 0}
+    stress = STRESS if args.stress else STRESS_LIGHT if args.stress_light else None
+    defaults = {
+        "normal": 16 if stress is STRESS_LIGHT else 12,
+        "anomalous": 6 if stress is None else 8,
+        "seed": 0 if stress is None else stress.seed,
+    }
     for name, value in defaults.items():
         if getattr(args, name) is None:
             setattr(args, name, value)
@@ -86,7 +108,8 @@ def run(args: argparse.Namespace) -> int:
             return 2
     total = (args.normal + args.anomalous) * args.frames
     started = time.perf_counter()
-    with tqdm(total=total, unit="frame", desc="generate stress set" if args.stress else "generate synthetic") as bar:
+    desc = "generate synthetic" if stress is None else f"generate {stress.name.replace('_', ' ')} set"
+    with tqdm(total=total, unit="frame", desc=desc) as bar:
         roots = generate_benchmark(
             out,
             args.normal,
@@ -95,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
             args.seed,
             args.size,
             on_frame=bar.update,
-            stress=args.stress,
+            stress=stress,
             workers=args.workers,
         )
     seconds = time.perf_counter() - started

@@ -369,6 +369,30 @@ def read_sensor_setup(path: Path) -> dict | None:
     return sensors
 
 
+def scenario_weathers(source: str | Path) -> dict[str, str]:
+    """Scenario folder name (`Scenario_<id>`) -> the weather preset the data's scenario config files
+    name for it (`Scenario_Configuration_Files/scenario_config_map_*.json`, entries with a
+    `scenario_id` and a string `weather`, as `umad generate synthetic` writes them).
+
+    The config folder is looked for in `source` (a data folder, a split folder or one scenario) and
+    up to three folders above it. Data without such files, or entries without a weather, give no
+    entry: a reader shows those drives' weather as unknown.
+    """
+    source = Path(source)
+    weathers: dict[str, str] = {}
+    for folder in [source, *list(source.parents)[:3]]:
+        for config in sorted((folder / "Scenario_Configuration_Files").glob("scenario_config_map_*.json")):
+            try:
+                data = json.loads(config.read_text())
+            except (OSError, ValueError):
+                continue
+            entries = data.get("scenarios", []) if isinstance(data, dict) else data
+            for entry in entries if isinstance(entries, list) else []:
+                if isinstance(entry, dict) and isinstance(entry.get("weather"), str) and "scenario_id" in entry:
+                    weathers.setdefault(f"Scenario_{entry['scenario_id']}", entry["weather"])
+    return weathers
+
+
 def semantic_to_colour(semantic: np.ndarray) -> np.ndarray:
     """CARLA tags -> RGB palette image; every anomaly tag becomes ANOMALY_COLOUR."""
     lut = np.zeros((256, 3), np.uint8)

@@ -232,21 +232,24 @@ def component_table(components: dict[str, dict]) -> Table:
 def scenario_table(result: SweepResult, csv_path: Path) -> Table:
     """AP / FPR95 / AUROC per scenario for the default weight row under each mask setting, the best
     row under each headline mask setting (`best <setting>: <row>`, from the sweep's second pass) and
-    MNAD, with the AnoVox categories found under the scenario's anomaly pixels; also written as CSV.
-    A last line names each setting's weakest scenario by AUROC and how many fall below AUROC_FLOOR."""
+    MNAD, with the AnoVox categories found under the scenario's anomaly pixels and the drive's weather
+    (`?` where the data's scenario config does not name it); also written as CSV. A last line names
+    each setting's weakest scenario (and its weather) by AUROC and how many fall below AUROC_FLOOR."""
     present = list(dict.fromkeys(label for per_run in result.per_scenario.values() for label in per_run))
     default_row = [label for label in result.setting_labels() if label in present]
     best_rows = [label for label in present if label not in default_row and label != "MNAD"]
     settings = default_row + best_rows + (["MNAD"] if "MNAD" in present else [])
     aurocs: dict[str, dict[str, float]] = {setting: {} for setting in settings}  # setting -> run -> AUROC
+    weathers = result.protocol.get("scenario_weather", {})
     lines = []
     with open(csv_path, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["scenario", "anomaly", "setting", "AP", "FPR95", "AUROC", "n_anomaly", "n_normal"])
+        writer.writerow(["scenario", "anomaly", "weather", "setting", "AP", "FPR95", "AUROC", "n_anomaly", "n_normal"])
         for run in sorted(result.per_scenario):
             tags = sorted(result.scenario_tags.get(run, ()))
             anomaly = "+".join(ANOMALY_CATEGORIES.get(t, str(t)) for t in tags) or "-"
-            cells = text_cells(run, anomaly)
+            weather = weathers.get(run, "?")
+            cells = text_cells(run, anomaly, weather)
             for setting in settings:
                 metrics = result.per_scenario[run].get(setting)
                 if metrics is None:
@@ -257,25 +260,29 @@ def scenario_table(result: SweepResult, csv_path: Path) -> Table:
                 if scores["AUROC"] is not None:
                     aurocs[setting][run] = scores["AUROC"]
                 cells.append(Cell(" / ".join(map(percent, scores.values()))))
-                writer.writerow([run, anomaly, setting, *scores.values(), s["n_anomaly"], s["n_normal"]])
+                writer.writerow([run, anomaly, weather, setting, *scores.values(), s["n_anomaly"], s["n_normal"]])
             lines.append(cells)
     if len(result.per_scenario) > 1:
         lines.append(
             text_cells(
-                "weakest scenario", f"below {100 * AUROC_FLOOR:.0f} % AUROC", *map(weakest_text, aurocs.values())
+                "weakest scenario",
+                f"below {100 * AUROC_FLOOR:.0f} % AUROC",
+                "",
+                *(weakest_text(per_run, weathers) for per_run in aurocs.values()),
             )
         )
-    return Table(["scenario", "anomaly", *(f"{s} AP / FPR95 / AUROC" for s in settings)], lines)
+    return Table(["scenario", "anomaly", "weather", *(f"{s} AP / FPR95 / AUROC" for s in settings)], lines)
 
 
-def weakest_text(aurocs: dict[str, float]) -> str:
-    """`AUROC <lowest> (<its scenario's short name>), <n> of <N> below AUROC_FLOOR` for one setting's
-    per-scenario AUROCs (run -> AUROC), or "" when none was scored."""
+def weakest_text(aurocs: dict[str, float], weathers: dict[str, str]) -> str:
+    """`AUROC <lowest> (<its scenario's short name>[, <its weather>]), <n> of <N> below AUROC_FLOOR`
+    for one setting's per-scenario AUROCs (run -> AUROC), or "" when none was scored."""
     if not aurocs:
         return ""
     run = min(aurocs, key=aurocs.get)
     below = sum(value < AUROC_FLOOR for value in aurocs.values())
-    return f"AUROC {percent(aurocs[run])} ({run.removeprefix('Scenario_')[:8]}), {below} of {len(aurocs)} below"
+    name = ", ".join([run.removeprefix("Scenario_")[:8], *([weathers[run]] if run in weathers else [])])
+    return f"AUROC {percent(aurocs[run])} ({name}), {below} of {len(aurocs)} below"
 
 
 def selected_curves(result: SweepResult) -> dict[str, PixelMetrics]:
@@ -394,7 +401,8 @@ def write_report(
             [
                 f"Default weights ({summary['default_weights']}) under each mask setting, then the best "
                 "row under each headline mask setting (`best …`); the last line names each setting's weakest "
-                f"scenario by AUROC and counts those below {100 * AUROC_FLOOR:.0f} %. Files: per_scenario.md, "
+                f"scenario by AUROC and counts those below {100 * AUROC_FLOOR:.0f} %. Each drive's weather is the "
+                "one the data's scenario config names (`?` where it names none). Files: per_scenario.md, "
                 "per_scenario.csv."
             ],
             [scenarios],

@@ -4,10 +4,13 @@ Output is a pure function of the arguments: scenario seeds, folder uuids and fir
 from one seeded generator, PNGs are written by cv2 (deterministic zlib), files carry no timestamps.
 Normal drives cycle through every weather preset, so a model trained on them has seen each one.
 
-The stress set (`stress=True`, its own default seed STRESS_SEED) is what the default benchmark
-never shows: normal drives that cover the presets unevenly (STRESS_NORMAL_WEATHERS: some in one
-drive of twelve, clear_noon in none) and anomalous drives, mostly under those rare presets, in which
-the ego brakes early to stand 20-40 m before the object and waits there to the end of the drive.
+The stress sets (`stress=STRESS` or `STRESS_LIGHT`, each with its own default seed) are what the
+default benchmark never shows. STRESS: normal drives that cover the presets unevenly
+(STRESS_NORMAL_WEATHERS: some in one drive of twelve, clear_noon in none) and anomalous drives,
+mostly under those rare presets, in which the ego brakes early to stand 20-40 m before the object
+and waits there to the end of the drive. STRESS_LIGHT: the direct sun (cast shadows, lane glare) in
+every drive whose sun shows, clear light (clear_noon, sunset) in 3 of 16 normal drives, and
+anomalous drives all under clear light, the ego waiting 20-40 m before the object facing the sun.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ import numpy as np
 
 from umad_common.datasets.anovox import KMH_PER_MPS, AnoVoxScenario, encode_depth, semantic_to_colour, write_key_values
 from umad_common.datasets.synthetic.anomalies import CATEGORIES
-from umad_common.datasets.synthetic.render import WEATHER_NAMES, CameraSpec, LidarSpec
+from umad_common.datasets.synthetic.render import EXTRA_WEATHERS, WEATHER_NAMES, CameraSpec, LidarSpec
 from umad_common.datasets.synthetic.scenario import SyntheticScenario
 
 MOUNT = "(0, 0, 1.8)(0, 0, 0)"
@@ -38,9 +41,35 @@ STRESS_NORMAL_WEATHERS = (
 # Anomalous drives of the stress set cycle through these eight: mostly the rare and unseen presets,
 # with fog, rain and cloudy (well covered) as controls.
 STRESS_ANOMALOUS_WEATHERS = ("clear_noon", "dusk", "fog", "night", "clear_noon", "dusk", "rain", "cloudy")
-STRESS_WAIT_M = (20.0, 40.0)  # gap between the stopped ego and the object in the stress set's anomalous drives
+STRESS_WAIT_M = (20.0, 40.0)  # gap between the stopped ego and the object in the stress sets' anomalous drives
+STRESS_LIGHT_SEED = 43  # the light stress set's default master seed (choose on seed 44: docs/benchmarks.md)
+# Normal drives of the light stress set cycle through these sixteen: clear light (clear_noon 2,
+# sunset 1) in three, cloudy 5, fog 3, rain 2, dusk 2, night 1.
+STRESS_LIGHT_NORMAL_WEATHERS = (
+    "cloudy", "fog", "rain", "dusk", "clear_noon", "cloudy", "fog", "night",
+    "cloudy", "sunset", "rain", "dusk", "cloudy", "fog", "clear_noon", "cloudy",
+)  # fmt: skip
+STRESS_LIGHT_ANOMALOUS_WEATHERS = ("sunset", "clear_noon")  # anomalous drives alternate these
 PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 EGO_TYPE = "vehicle.lincoln.mkz_2020"
+
+
+@dataclass(frozen=True)
+class StressSet:
+    """A set of drives the default benchmark never shows: its weather cycles and how it is lit."""
+
+    name: str  # the config file's "set"
+    seed: int  # default master seed
+    normal_weathers: tuple[str, ...]  # normal drives cycle through these presets...
+    anomalous_weathers: tuple[str, ...]  # ...and anomalous ones through these
+    direct_sunlight: bool  # cast shadows and lane glare in every drive whose sun shows
+    sun_ahead: bool  # the sun stands ahead of where the anomalous drives' ego waits
+
+
+STRESS = StressSet("stress", STRESS_SEED, STRESS_NORMAL_WEATHERS, STRESS_ANOMALOUS_WEATHERS, False, False)
+STRESS_LIGHT = StressSet(
+    "stress_light", STRESS_LIGHT_SEED, STRESS_LIGHT_NORMAL_WEATHERS, STRESS_LIGHT_ANOMALOUS_WEATHERS, True, True
+)
 
 
 @dataclass(frozen=True)
@@ -55,12 +84,11 @@ class ScenarioPlan:
     first_frame_id: int
 
 
-def plan_benchmark(normal: int, anomalous: int, seed: int, stress: bool = False) -> list[ScenarioPlan]:
+def plan_benchmark(normal: int, anomalous: int, seed: int, stress: StressSet | None = None) -> list[ScenarioPlan]:
     """Scenario plans: normal drives cycle through all weathers; anomalous ones through categories
-    and weathers. With `stress`, weathers cycle through STRESS_NORMAL_WEATHERS and
-    STRESS_ANOMALOUS_WEATHERS instead."""
-    if stress:
-        return _plan_stress(normal, anomalous, seed)
+    and weathers. With a `stress` set, weathers cycle through its presets instead."""
+    if stress is not None:
+        return _plan_stress(normal, anomalous, seed, stress)
     rng = np.random.default_rng(seed)
     plans = []
     for split, count in (("normal", normal), ("anomalous", anomalous)):
@@ -78,12 +106,12 @@ def plan_benchmark(normal: int, anomalous: int, seed: int, stress: bool = False)
     return plans
 
 
-def _plan_stress(normal: int, anomalous: int, seed: int) -> list[ScenarioPlan]:
+def _plan_stress(normal: int, anomalous: int, seed: int, stress: StressSet) -> list[ScenarioPlan]:
     rng = np.random.default_rng(seed)
     plans = []
     for split, count, weathers in (
-        ("normal", normal, STRESS_NORMAL_WEATHERS),
-        ("anomalous", anomalous, STRESS_ANOMALOUS_WEATHERS),
+        ("normal", normal, stress.normal_weathers),
+        ("anomalous", anomalous, stress.anomalous_weathers),
     ):
         for k in range(count):
             scenario_id = str(uuid.UUID(bytes=rng.bytes(16), version=4))
@@ -94,13 +122,16 @@ def _plan_stress(normal: int, anomalous: int, seed: int) -> list[ScenarioPlan]:
     return plans
 
 
-def stress_coverage(normal: int, anomalous: int) -> dict[str, dict[str, int]]:
-    """Drives per weather preset of a stress set of this size: {"normal": {...}, "anomalous": {...}}."""
+def stress_coverage(stress: StressSet, normal: int, anomalous: int) -> dict[str, dict[str, int]]:
+    """Drives per weather preset of a stress set of this size: {"normal": {...}, "anomalous": {...}}
+    (every preset of the default cycle, and the extra presets the set uses)."""
+    used = {*stress.normal_weathers, *stress.anomalous_weathers}
+    names = [*WEATHER_NAMES, *(w.name for w in EXTRA_WEATHERS if w.name in used)]
     return {
-        split: {w: sum(weathers[k % len(weathers)] == w for k in range(count)) for w in WEATHER_NAMES}
+        split: {w: sum(weathers[k % len(weathers)] == w for k in range(count)) for w in names}
         for split, count, weathers in (
-            ("normal", normal, STRESS_NORMAL_WEATHERS),
-            ("anomalous", anomalous, STRESS_ANOMALOUS_WEATHERS),
+            ("normal", normal, stress.normal_weathers),
+            ("anomalous", anomalous, stress.anomalous_weathers),
         )
     }
 
@@ -201,16 +232,15 @@ def generate_benchmark(
     seed: int,
     size: tuple[int, int],
     on_frame: Callable[[], None] | None = None,
-    stress: bool = False,
+    stress: StressSet | None = None,
     workers: int = 1,
 ) -> list[Path]:
-    """Write OUT/normal/Scenario_*, OUT/anomalous/Scenario_* and the scenario config file; with
-    `stress`, the stress set (see the module docstring) for the same arguments. Each scenario is
+    """Write OUT/normal/Scenario_*, OUT/anomalous/Scenario_* and the scenario config file; with a
+    `stress` set (see the module docstring), that set for the same arguments. Each scenario is
     rendered from its own seed, so `workers` > 1 renders scenarios in that many processes and writes
     the same bytes (`on_frame` is then called for a scenario's frames when it is done)."""
     camera = CameraSpec(width=size[0], height=size[1])
-    wait_at = STRESS_WAIT_M if stress else None
-    render = partial(_render_scenario, frames=frames, camera=camera, out=out, wait_at=wait_at)
+    render = partial(_render_scenario, frames=frames, camera=camera, out=out, stress=stress)
     plans = plan_benchmark(normal, anomalous, seed, stress)
     if workers > 1 and len(plans) > 1:
         import multiprocessing
@@ -242,20 +272,36 @@ def _render_scenario(
     frames: int,
     camera: CameraSpec,
     out: Path,
-    wait_at: tuple[float, float] | None,
+    stress: StressSet | None,
     on_frame: Callable[[], None] | None = None,
 ) -> tuple[Path, dict]:
     """Render and write one planned scenario; (its folder, its config record)."""
-    scenario = SyntheticScenario(plan.seed, frames, plan.anomaly, plan.weather, camera=camera, wait_at=wait_at)
+    scenario = SyntheticScenario(
+        plan.seed,
+        frames,
+        plan.anomaly,
+        plan.weather,
+        camera=camera,
+        wait_at=STRESS_WAIT_M if stress is not None else None,
+        direct_sunlight=stress is not None and stress.direct_sunlight,
+        sun_ahead=stress is not None and stress.sun_ahead and plan.anomaly is not None,
+    )
     (out / plan.split).mkdir(parents=True, exist_ok=True)
     return write_scenario(scenario, plan, out / plan.split, on_frame), scenario_record(plan, scenario)
 
 
-def _stress_note(stress: bool, normal: int, anomalous: int) -> dict:
+def _stress_note(stress: StressSet | None, normal: int, anomalous: int) -> dict:
     """What the config file adds for a stress set (nothing for the default benchmark)."""
-    if not stress:
+    if stress is None:
         return {}
-    return {"set": "stress", "wait_m": list(STRESS_WAIT_M), "weather_drives": stress_coverage(normal, anomalous)}
+    note = {
+        "set": stress.name,
+        "wait_m": list(STRESS_WAIT_M),
+        "weather_drives": stress_coverage(stress, normal, anomalous),
+    }
+    if stress.direct_sunlight:
+        note |= {"direct_sunlight": True, "sun_ahead_in_anomalous_drives": stress.sun_ahead}
+    return note
 
 
 def _label(image: np.ndarray, text: str) -> np.ndarray:

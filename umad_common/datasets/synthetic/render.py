@@ -1,5 +1,9 @@
 """Sensors of the synthetic world: the FOV-90 camera (rgb, CARLA depth, semantic tags, instances) and
-the 64-channel lidar, both cast against the same geometry; weather and time-of-day presets."""
+the 64-channel lidar, both cast against the same geometry; weather and time-of-day presets.
+
+The default benchmark lights the ground evenly. With `direct_sunlight`, a sun that stands up and is
+not hidden by clouds casts soft shadows of every primitive on the ground (shadows.py), tints what it
+lights with its colour, and makes lane paint glare where it mirrors the sun (a low sun ahead)."""
 
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ from umad_common.datasets.synthetic.raycast import (
     spherical_rects,
     unit_normal,
 )
+from umad_common.datasets.synthetic.shadows import MIN_SUN_HEIGHT, GroundShadowMap
 from umad_common.datasets.synthetic.world import (
     LANE_WIDTH,
     MAT_FOLIAGE,
@@ -39,6 +44,8 @@ from umad_common.datasets.synthetic.world import (
 
 SKY_DEPTH_M = 1000.0  # CARLA's far plane: sky pixels decode to 1000 m
 CULL_RANGE_M = 150.0
+LANE_GLARE_GAIN = 3.0  # peak glare of lane paint that mirrors the sun, times the sun's strength
+LANE_GLARE_EXPONENT = 40  # how narrow the glare's lobe around the mirror direction is
 
 
 @dataclass(frozen=True)
@@ -57,6 +64,13 @@ class Weather:
     cloud: float = 0.0
     rain: bool = False
     night: bool = False
+
+    @property
+    def sun_casts_shadows(self) -> bool:
+        """Whether the sun stands up and the sky is clear enough for it to cast shadows."""
+        return (
+            self.sun_strength > 0 and np.sin(np.radians(self.sun_elevation_deg)) >= MIN_SUN_HEIGHT and self.cloud < 0.5
+        )
 
 
 WEATHERS = (
@@ -126,7 +140,30 @@ WEATHERS = (
         night=True,
     ),
 )
-WEATHER_NAMES = tuple(w.name for w in WEATHERS)
+WEATHER_NAMES = tuple(w.name for w in WEATHERS)  # the presets the default benchmark cycles through
+# Presets only the stress sets use (adding one to WEATHERS would change the default benchmark's drives).
+EXTRA_WEATHERS = (
+    Weather(
+        "sunset",
+        (0.28, 0.36, 0.62),
+        (1.0, 0.70, 0.45),
+        15,
+        (1.0, 0.78, 0.55),
+        1.3,
+        0.32,
+        0.003,
+        (0.85, 0.70, 0.58),
+        0.15,
+    ),
+)
+
+
+def weather_named(name: str) -> Weather:
+    """The preset called `name`, from WEATHERS or EXTRA_WEATHERS."""
+    for weather in (*WEATHERS, *EXTRA_WEATHERS):
+        if weather.name == name:
+            return weather
+    raise ValueError(f"unknown weather {name!r}; expected one of {[w.name for w in (*WEATHERS, *EXTRA_WEATHERS)]}")
 
 
 @dataclass(frozen=True)
@@ -213,9 +250,22 @@ class Renderer:
     """Renders one scenario's sensors for ego poses (x, y, heading) and the primitives of the moment."""
 
     def __init__(
-        self, road: RoadCurve, weather: Weather, camera: CameraSpec, lidar: LidarSpec, seed: int, sun_azimuth: float
+        self,
+        road: RoadCurve,
+        weather: Weather,
+        camera: CameraSpec,
+        lidar: LidarSpec,
+        seed: int,
+        sun_azimuth: float,
+        direct_sunlight: bool = False,
     ):
+        """Args:
+        direct_sunlight: light the ground as a visible sun does (cast shadows, its colour, glare on
+            lane paint) when the weather's sun casts shadows; False: the default benchmark's evenly
+            lit ground.
+        """
         self.road, self.weather, self.camera, self.lidar, self.seed = road, weather, camera, lidar, seed
+        self.direct_sunlight = direct_sunlight and weather.sun_casts_shadows
         self.camera_rays = camera.rays()
         self.camera_ray_len = np.linalg.norm(self.camera_rays, axis=1)
         self.lidar_rays = lidar.rays()
@@ -251,7 +301,13 @@ class Renderer:
         colour = np.zeros((len(dirs), 3))
         colour[sky] = self._sky(dirs[sky])
         rng_m = t * self.camera_ray_len
-        colour[ground_px] = self._shade_ground(ground, line, ground_px, origin, dirs, rng_m)
+        albedo = self._ground_albedo(ground, line, ground_px, origin, dirs, rng_m)
+        if self.direct_sunlight:
+            points = origin + t[ground_px, None] * dirs[ground_px]
+            shadow = GroundShadowMap(prims, self.sun, pose[:2], pose[2]).at(points)
+            colour[ground_px] = self._sunlit_ground(albedo, shadow, line, dirs[ground_px])
+        else:
+            colour[ground_px] = albedo * (self.weather.ambient + self.weather.sun_strength * max(self.sun[2], 0.0))
         if use_prim.any():
             colour[use_prim] = self._shade_prims(
                 prims, hit.prim[use_prim], origin, dirs[use_prim], t[use_prim], rng_m[use_prim]
@@ -314,7 +370,7 @@ class Renderer:
             )
         return colour
 
-    def _shade_ground(
+    def _ground_albedo(
         self,
         ground: GroundHit,
         line: np.ndarray,
@@ -323,7 +379,7 @@ class Renderer:
         dirs: np.ndarray,
         rng_m: np.ndarray,
     ) -> np.ndarray:
-        """Colours of the ground pixels `px`: textured asphalt with paint, sidewalk tiles, grass and dirt."""
+        """Albedo of the ground pixels `px`: textured asphalt with paint, sidewalk tiles, grass and dirt."""
         w = self.weather
         s, d, surface, t = ground.s[px], ground.d[px], ground.surface[px], ground.t[px]
         x = origin[0] + t * dirs[px, 0]
@@ -346,7 +402,26 @@ class Renderer:
         base = np.where(
             (surface == GROUND_ROAD)[:, None], road, np.where((surface == GROUND_SIDEWALK)[:, None], walk, grass)
         )
-        return base * (w.ambient + w.sun_strength * max(self.sun[2], 0.0))
+        return base
+
+    def _sunlit_ground(self, albedo: np.ndarray, shadow: np.ndarray, line: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Ground colours relit by the direct sun: ambient light everywhere, the sun's coloured light
+        where no shadow falls, and glare on lane paint seen near the sun's mirror direction.
+
+        Args:
+            albedo: (N, 3) from `_ground_albedo`.
+            shadow: (N,) in [0, 1], 1 where the sun is hidden.
+            line: (N,) lane paint.
+            dirs: (N, 3) the camera rays that met these points.
+        """
+        w = self.weather
+        direct = w.sun_strength * self.sun[2]
+        sun_colour = np.array(w.sun_colour)
+        light = w.ambient + (direct * (1 - shadow))[:, None] * sun_colour
+        mirrored = dirs * np.array([1.0, 1.0, -1.0]) / np.linalg.norm(dirs, axis=1, keepdims=True)
+        lobe = np.clip(mirrored @ self.sun, 0.0, 1.0) ** LANE_GLARE_EXPONENT
+        glare = LANE_GLARE_GAIN * w.sun_strength * lobe * line * (1 - shadow)
+        return albedo * light + glare[:, None] * sun_colour
 
     def _shade_prims(
         self, prims: PrimSet, idx: np.ndarray, origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, rng_m: np.ndarray
@@ -399,7 +474,10 @@ class Renderer:
 
         sun = np.clip(np.einsum("nj,j->n", normal, self.sun), 0, None) * w.sun_strength
         sky_light = w.ambient * (0.7 + 0.3 * normal[:, 2])
-        lit = base * (sky_light + sun)[:, None]
+        if self.direct_sunlight:
+            lit = base * (sky_light[:, None] + sun[:, None] * np.array(w.sun_colour))
+        else:
+            lit = base * (sky_light + sun)[:, None]
         emissive = window & w.night
         return np.where(emissive[:, None], base, lit)
 

@@ -14,7 +14,15 @@ import cv2
 import numpy as np
 
 from umad_common.datasets.synthetic.anomalies import AnomalyShape, make_anomaly
-from umad_common.datasets.synthetic.render import WEATHERS, CameraFrame, CameraSpec, LidarSpec, Renderer, Weather
+from umad_common.datasets.synthetic.render import (
+    WEATHERS,
+    CameraFrame,
+    CameraSpec,
+    LidarSpec,
+    Renderer,
+    Weather,
+    weather_named,
+)
 from umad_common.datasets.synthetic.world import (
     EGO_LANE_D,
     ONCOMING_LANE_D,
@@ -30,6 +38,7 @@ WHEELBASE_M = 2.9
 MAX_STEER_RAD = np.radians(35.0)
 MAX_ACCEL, MAX_DECEL = 2.5, 6.0  # m/s^2 at full throttle / full brake
 LATERAL_ACCEL = 2.0  # comfort limit in curves, m/s^2
+SUN_AHEAD_DEG = (10.0, 40.0)  # with `sun_ahead`, the sun's azimuth lies this far either side of the road ahead
 ROUTE_SIZE, ROUTE_PX_PER_M, ROUTE_EGO_FROM_BOTTOM, ROUTE_THICKNESS = 192, 5, 40, 16
 
 
@@ -128,12 +137,20 @@ class SyntheticScenario:
         camera: CameraSpec | None = None,
         lidar: LidarSpec | None = None,
         wait_at: tuple[float, float] | None = None,
+        direct_sunlight: bool = False,
+        sun_ahead: bool = False,
     ):
         """Args:
+        weather: a preset's name (render.WEATHERS or render.EXTRA_WEATHERS); None: drawn from WEATHERS.
         wait_at: (nearest, farthest) gap in metres between the stopped ego and the anomaly: the
             ego brakes early in the drive to stand that far before the object and waits there
-            to the end (the stress set). None: the default benchmark's behaviours (a stop 5-9 m
+            to the end (the stress sets). None: the default benchmark's behaviours (a stop 5-9 m
             before the object, or a slow pass), drawn exactly as before.
+        direct_sunlight: cast shadows, sun colour and lane-paint glare where the weather's sun
+            shows (the light stress set); False: the default benchmark's evenly lit ground.
+        sun_ahead: the sun stands SUN_AHEAD_DEG to the left or right of the road's heading where
+            the drive ends (where the ego waits before the object), so a low sun faces the camera;
+            False: any azimuth. Both draw nothing more from the seed's generator.
         """
         if frames < 1:
             raise ValueError(f"frames must be >= 1, got {frames}")
@@ -145,10 +162,7 @@ class SyntheticScenario:
         if weather is None:
             self.weather: Weather = WEATHERS[rng.integers(len(WEATHERS))]
         else:
-            matches = [w for w in WEATHERS if w.name == weather]
-            if not matches:
-                raise ValueError(f"unknown weather {weather!r}; expected one of {[w.name for w in WEATHERS]}")
-            self.weather = matches[0]
+            self.weather = weather_named(weather)
         self.style = STYLES[rng.integers(len(STYLES))]
         cruise = rng.uniform(8.0, 11.0)
         reach = frames * FRAME_DT * cruise * 1.2 + 250
@@ -194,7 +208,13 @@ class SyntheticScenario:
             a.inst, a.yaw, a.position = next_inst, heading + a.yaw, (x, y, 0.0)
             self.anomaly_prims = PrimSet.from_parts(a.shape.parts, x, y, a.yaw, a.inst)
         sun_azimuth = rng.uniform(-np.pi, np.pi)
-        self.renderer = Renderer(self.road, self.weather, self.camera, self.lidar, seed, sun_azimuth)
+        if sun_ahead:  # the same draw, mapped to SUN_AHEAD_DEG either side of the road's end heading
+            side = np.sign(sun_azimuth) or 1.0
+            offset = np.radians(SUN_AHEAD_DEG[0] + (SUN_AHEAD_DEG[1] - SUN_AHEAD_DEG[0]) * abs(sun_azimuth) / np.pi)
+            sun_azimuth = self.pose(frames - 1)[2] + side * offset
+        self.renderer = Renderer(
+            self.road, self.weather, self.camera, self.lidar, seed, sun_azimuth, direct_sunlight=direct_sunlight
+        )
 
     def _plan_movers(self, rng: np.random.Generator, first_inst: int, cruise: float, s_end: float) -> list[MovingCar]:
         """Oncoming cars, and in normal drives sometimes a faster lead car in the ego lane."""
