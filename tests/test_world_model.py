@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shlex
 from dataclasses import asdict
 
 import numpy as np
@@ -608,7 +609,6 @@ def test_test_world_model_command_names_data_it_cannot_score(tmp_path, weights):
 def test_readme_recipe_rebuilds_the_shipped_world_model():
     """The README's `umad train world-model` line, parsed as the CLI parses it, asks for exactly the
     configs, epochs, seed and threads the shipped model's JSON records, and is the command it records."""
-    import shlex
     from dataclasses import asdict
 
     from tests.conftest import readme_recipe
@@ -618,7 +618,7 @@ def test_readme_recipe_rebuilds_the_shipped_world_model():
     args, words = readme_recipe("world-model", train_world_model)
     model_config, train, epochs, seed = train_world_model.configs_of(args)
     shipped = json.loads((ASSETS / "world_model.json").read_text())
-    assert model_config.to_dict() == shipped["config"]
+    assert {**model_config.to_dict(), "lidar_head": True} == shipped["config"]  # the head: the recipe's next line
     assert asdict(train) == shipped["train_config"]
     assert (epochs, seed, args.threads) == (shipped["epochs"], shipped["seed"], shipped["threads"])
     assert shipped["command"] == train_world_model.command_line(args) == shlex.join(words)
@@ -760,3 +760,15 @@ def test_predictor_sends_the_returns_and_the_range_its_lidar_view_expects(tmp_pa
     save_world_model(tiny_model(), tmp_path / "camera_only")
     camera_only = WorldModelPredictor({"model": str(tmp_path / "camera_only.safetensors"), "horizon": 2})
     assert "lidar_range" not in camera_only.process(frame)["frame"].arrays
+
+
+def test_readme_recipe_adds_the_shipped_lidar_head():
+    """The README's `umad train lidar-head` line is the command the shipped model's head was fitted with."""
+    from tests.conftest import readme_recipe
+    from umad_common import ASSETS
+    from umad_common.commands import train_lidar_head
+
+    args, words = readme_recipe("lidar-head", train_lidar_head)
+    fit = json.loads((ASSETS / "world_model.json").read_text())["lidar_head_fit"]
+    assert fit["command"] == train_lidar_head.command_line(args) == shlex.join(words)
+    assert (fit["epochs"], fit["seed"], fit["threads"]) == (args.epochs, args.seed, args.threads)

@@ -30,15 +30,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_device_argument(parser)
 
 
+def command_line(args: argparse.Namespace) -> str:
+    """The command as it was given, every option spelled out, for the model's record."""
+    words = ["umad", "train", "lidar-head", str(args.data), "--world-model", str(args.world_model)]
+    words += ["--out", str(args.out), "--epochs", str(args.epochs), "--seed", str(args.seed)]
+    words += ["--threads", str(args.threads)] + (["--device", args.device] if args.device != "auto" else [])
+    return shlex.join(words)
+
+
 def run(args: argparse.Namespace) -> int:
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see `umad train world-model`
     from umad_common.training.train_world_model import fit_lidar_head
 
     if args.epochs < 1:
         raise SystemExit(f"--epochs is {args.epochs}; expected at least 1")
-    words = ["umad", "train", "lidar-head", str(args.data), "--world-model", str(args.world_model)]
-    words += ["--out", str(args.out), "--epochs", str(args.epochs), "--seed", str(args.seed)]
-    words += ["--threads", str(args.threads)] + (["--device", args.device] if args.device != "auto" else [])
     try:
         fit = fit_lidar_head(
             args.data,
@@ -47,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
             epochs=args.epochs,
             seed=args.seed,
             threads=args.threads,
-            command=shlex.join(words),
+            command=command_line(args),
             device=resolve_device_or_exit(args.device),
         )
     except ValueError as exc:

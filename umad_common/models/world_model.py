@@ -10,6 +10,7 @@ that grid: a deterministic convolutional GRU map h_t and a stochastic Gaussian m
     prior      p(z_t | h_t)                     what the model expects without looking
     posterior  q(z_t | h_t, embed(o_t))         what it believes after looking
     decoder    (h_t, z_t) -> RGB image
+    lidar head (h_t, z_t) -> the lidar view: the range of every pixel of the camera's frustum (optional)
 
 A spatial state lets the model keep the layout of the scene it has seen (where the road, the
 facades, the lane marks are) and move it with the car's motion, so the prior can predict frames
@@ -496,8 +497,11 @@ class WorldModel(nn.Module):
             upsample_stack(c.decoder_channels, 3),
         )
         if c.lidar_head:
+            rows, cols = c.grid
+            ys, xs = torch.meshgrid(torch.linspace(-1, 1, rows), torch.linspace(-1, 1, cols), indexing="ij")
+            self.register_buffer("cell_position", torch.stack([xs, ys])[None], persistent=False)  # (1, 2, rows, cols)
             self.lidar_decoder = nn.Sequential(
-                nn.Conv2d(c.deter_channels + c.stoch_channels, c.lidar_decoder_channels[0], 3, padding=1),
+                nn.Conv2d(c.deter_channels + c.stoch_channels + 2, c.lidar_decoder_channels[0], 3, padding=1),
                 nn.SiLU(),
                 upsample_stack(c.lidar_decoder_channels, c.lidar_view_scale**2),
                 nn.PixelShuffle(c.lidar_view_scale),
@@ -582,7 +586,10 @@ class WorldModel(nn.Module):
 
     def decode_lidar_log(self, state: State) -> torch.Tensor:
         """States (N, .) -> log range (N, rows, columns): what training compares with the returns."""
-        grid = torch.cat([self.as_grid(state.h), self.as_grid(state.z)], dim=1)
+        h = self.as_grid(state.h)
+        position = self.cell_position.to(h.dtype).expand(h.shape[0], -1, -1, -1)
+        grid = torch.cat([h, self.as_grid(state.z), position], dim=1)  # where a cell looks: the road's range
+        #   under a cell follows from its row alone, which convolutions cannot see without it
         return self.lidar_decoder(grid)[:, 0].clamp(-3.0, 6.0)
 
     def fold_upsampling(self) -> None:

@@ -37,6 +37,7 @@ METRIC_COLUMNS = {  # a weight row's metric -> its column: the paper's five, the
     "perceptual": "PD",
     "temporal": "TD",
     "ssim_shift": "SSIM±2",
+    "lidar": "LIDAR",
 }
 METRICS = tuple(METRIC_COLUMNS)
 AUROC_FLOOR = 0.80  # a scenario whose AUROC is below this is one the detector fails (issue 30's bar)
@@ -110,7 +111,7 @@ def rank_marks(rows: list[dict[str, Any]], keys: tuple[tuple[str, bool], ...] = 
 
 
 def _fractions(weights: dict[str, float]) -> list[str]:
-    return [str(Fraction(weights[m]).limit_denominator(10)) if m in weights else "" for m in METRICS]
+    return [str(Fraction(weights[m]).limit_denominator(60)) if m in weights else "" for m in METRICS]
 
 
 def _normalization_note(row: dict[str, Any]) -> str:
