@@ -30,7 +30,13 @@ from umad_common.dataflow.recording import mask_sources
 from umad_common.datasets.synthetic.generator import generate_benchmark
 from umad_common.datasets.synthetic.scenario import FRAME_DT, SyntheticScenario
 from umad_common.refine import mask_scores, resize_nearest
-from umad_common.viz.foxglove import FRAME_SCORE_SCHEMA, SCHEMA_FOLDER, EgoOdometry, vendored_schemas
+from umad_common.viz.foxglove import (
+    FRAME_SCORE_SCHEMA,
+    SCHEMA_FOLDER,
+    EgoOdometry,
+    score_colour,
+    vendored_schemas,
+)
 
 FRAMES = 4
 MAP_SHAPE = (32, 48)  # the maps' and masks' (h, w): the world model's size, smaller than the camera's
@@ -162,8 +168,8 @@ def test_each_mask_is_outlined_on_the_camera_with_its_refined_score(short_run):
     for frame, annotation in zip(frames, annotations, strict=True):
         refined, masks = refined_of[(frame.run, frame.seq)]
         scores = mask_scores(refined, masks, "mean")
-        outlined = Counter(point["metadata"][0]["value"] for point in annotation["points"])
-        assert set(outlined) == {f"{s:.2f}" for s in scores[np.isfinite(scores)]}
+        colours = {tuple(outline["outline_color"].values()) for outline in annotation["points"]}
+        assert colours == {tuple(score_colour(s).values()) for s in scores[np.isfinite(scores)]}
         assert len(annotation["points"]) >= np.isfinite(scores).sum()
         xs = [p["x"] for outline in annotation["points"] for p in outline["points"]]
         ys = [p["y"] for outline in annotation["points"] for p in outline["points"]]

@@ -115,7 +115,9 @@ class McapRecorder:
             channel = self._channels.get(topic)
             if channel is None:
                 channel = self._channels[topic] = self._writer.register_channel(topic, "json", schema_id)
-            self._writer.add_message(channel, time.time_ns(), json.dumps(obj).encode(), stamp_ns, 0)
+            self._writer.add_message(
+                channel, time.time_ns(), json.dumps(obj, separators=(",", ":")).encode(), stamp_ns, 0
+            )
 
     def _viz_worker(self, mask_sources: dict[str, str]) -> None:
         from umad_common.viz.foxglove import FoxgloveViews, schema

@@ -39,7 +39,7 @@ from umad_common.datasets.synthetic.scenario import (
     ROUTE_SIZE,
     WHEELBASE_M,
 )
-from umad_common.refine import mask_scores, resize_nearest
+from umad_common.refine import resize_nearest
 
 SCHEMA_FOLDER = Path(__file__).with_name("foxglove_schemas")  # @foxglove/schemas' JSON schemas, as published
 FRAME_SCORE_SCHEMA = {
@@ -68,6 +68,7 @@ FLOAT32 = 7  # foxglove.NumericType
 LINE_LOOP_3D, LINE_LOOP_2D = 1, 2  # foxglove.LinePrimitive / foxglove.PointsAnnotation types
 TRUTH_COLOUR = {"r": 0.1, "g": 1.0, "b": 0.3, "a": 1.0}  # the anomaly truth's outline: green, beside the masks' inferno
 ROUTE_COLOUR = {"r": 0.2, "g": 0.6, "b": 1.0, "a": 1.0}
+OUTLINE_TOLERANCE_PX = 0.7  # a mask's outline, simplified: no pixel of it farther off (in the mask's pixels)
 MASK_LABELS = 5  # masks whose score is written beside them, highest first (as the frame result's top_k)
 MASKS_REMEMBERED = 32  # frames of masks (and of maps waiting for their masks) kept per channel for the join
 INFERNO = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_INFERNO)[:, 0]  # (256, 3) BGR
@@ -102,9 +103,15 @@ def _colour_map(score: np.ndarray) -> np.ndarray:
     return cv2.applyColorMap(scaled, cv2.COLORMAP_INFERNO)
 
 
-def _score_colour(score: float) -> tuple[int, int, int]:
+def _score_bgr(score: float) -> tuple[int, int, int]:
     """A [0, 1] score's inferno colour, BGR."""
     return tuple(int(c) for c in INFERNO[int(np.clip(score, 0, 1) * 255)])
+
+
+def score_colour(score: float) -> dict:
+    """A [0, 1] score's inferno colour as a foxglove.Color (the heat maps' colours)."""
+    blue, green, red = _score_bgr(score)
+    return {"r": red / 255, "g": green / 255, "b": blue / 255, "a": 1.0}
 
 
 def _boxes_picture(msg: Message) -> np.ndarray:
@@ -115,7 +122,7 @@ def _boxes_picture(msg: Message) -> np.ndarray:
     height, width = (int(n) for n in msg.meta.get("image_size", extent))
     picture = np.zeros((height, width, 3), np.uint8)
     for (x0, y0, x1, y1), score in zip(boxes, msg.arrays["box_scores"], strict=True):
-        colour = _score_colour(float(score))
+        colour = _score_bgr(float(score))
         cv2.rectangle(picture, (int(x0), int(y0)), (int(x1) - 1, int(y1) - 1), colour, 2)
         cv2.putText(picture, f"{score:.2f}", (int(x0), max(int(y0) - 3, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour)
     frame_score = float(msg.arrays["score"][0])
@@ -145,10 +152,6 @@ def views(output: str, msg: Message) -> dict[str, np.ndarray]:
 
 def _time(stamp_ns: int) -> dict:
     return {"sec": stamp_ns // 1_000_000_000, "nsec": stamp_ns % 1_000_000_000}
-
-
-def _rgba(bgr: tuple[int, int, int], alpha: float = 1.0) -> dict:
-    return {"r": bgr[2] / 255, "g": bgr[1] / 255, "b": bgr[0] / 255, "a": alpha}
 
 
 def _quaternion(roll: float, pitch: float, yaw: float) -> dict:
@@ -269,10 +272,16 @@ def ego_messages(state: EgoState) -> dict[str, tuple[str, dict]]:
     return {"transform": ("foxglove.FrameTransform", transform), "pose": ("foxglove.PoseInFrame", pose)}
 
 
-def _outlines(mask: np.ndarray, scale_x: float, scale_y: float) -> list[np.ndarray]:
-    """The outer outlines of a mask's regions, (n, 2) float x, y in the scaled image's pixels
-    (rounded to a tenth of a pixel: the JSON stays short)."""
-    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+def _outlines(
+    mask: np.ndarray, scale_x: float, scale_y: float, offset: tuple[int, int] = (0, 0), tolerance_px: float = 0.0
+) -> list[np.ndarray]:
+    """The outer outlines of a (h, w) uint8 or bool mask's regions, (n, 2) float x, y in the scaled
+    image's pixels (rounded to a tenth of a pixel: the JSON stays short). `offset`: the mask's
+    top-left corner (x, y) in the whole image; `tolerance_px`: each outline simplified to a polygon
+    that leaves none of its pixels farther than this (in the mask's pixels)."""
+    contours, _ = cv2.findContours(mask.view(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE, offset=offset)
+    if tolerance_px > 0:
+        contours = [cv2.approxPolyDP(c, tolerance_px, True) for c in contours]
     return [np.round(c[:, 0, :] * (scale_x, scale_y), 1) for c in contours]
 
 
@@ -292,7 +301,7 @@ def route_scene(route: np.ndarray, stamp_ns: int) -> dict:
                 "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": _quaternion(0.0, 0.0, 0.0)},
                 "thickness": 0.15,
                 "scale_invariant": False,
-                "points": [{"x": float(f), "y": float(s), "z": 0.05} for f, s in zip(forward, left, strict=True)],
+                "points": [{"x": f, "y": s, "z": 0.05} for f, s in zip(forward.tolist(), left.tolist(), strict=True)],
                 "color": ROUTE_COLOUR,
                 "colors": [],
                 "indices": [],
@@ -311,18 +320,15 @@ def route_scene(route: np.ndarray, stamp_ns: int) -> dict:
     return {"deletions": [], "entities": [entity]}
 
 
-def _outline_annotation(
-    outline: np.ndarray, stamp: dict, colour: dict, thickness: float, metadata: dict[str, str]
-) -> dict:
+def _outline_annotation(outline: np.ndarray, stamp: dict, colour: dict, thickness: float) -> dict:
     return {
         "timestamp": stamp,
         "type": LINE_LOOP_2D,
-        "points": [{"x": float(x), "y": float(y)} for x, y in outline],
+        "points": [{"x": x, "y": y} for x, y in outline.tolist()],
         "outline_color": colour,
         "outline_colors": [],
         "fill_color": {"r": 0.0, "g": 0.0, "b": 0.0, "a": 0.0},
         "thickness": thickness,
-        "metadata": [{"key": key, "value": value} for key, value in metadata.items()],
     }
 
 
@@ -339,21 +345,26 @@ def _label(text: str, x: float, y: float, stamp: dict, colour: dict) -> dict:
 
 def mask_annotations(refined: np.ndarray, masks: np.ndarray, camera_size: tuple[int, int], stamp_ns: int) -> dict:
     """Each non-empty mask's outline on the camera image of `camera_size` (h, w) in its refined
-    score's colour, with the score (the refined map's mean over the mask, as the frame result's
-    boxes) in the outline's metadata, and written at the top-left corner of the MASK_LABELS
-    highest-scoring masks, as foxglove.ImageAnnotations."""
-    masks = resize_nearest(masks.astype(bool, copy=False), refined.shape)
-    scores = mask_scores(refined, masks, "mean") if len(masks) else np.zeros(0)
+    score's colour (the score: the refined map's mean over the mask, as the frame result's boxes),
+    the score written at the top-left corner of the MASK_LABELS highest-scoring masks, as
+    foxglove.ImageAnnotations. Each mask is read within its bounding box
+    (a frame of label-free masks has a hundred or more), its outline simplified by OUTLINE_TOLERANCE_PX."""
+    masks = np.ascontiguousarray(resize_nearest(masks.astype(bool, copy=False), refined.shape)).view(np.uint8)
     scale_x, scale_y = camera_size[1] / refined.shape[1], camera_size[0] / refined.shape[0]
     stamp = _time(stamp_ns)
-    labelled = set(np.argsort(-scores, kind="stable")[:MASK_LABELS].tolist())
-    outlines, labels = [], []
-    for index, (mask, score) in enumerate(zip(masks, scores, strict=True)):
-        if not np.isfinite(score):  # an empty mask
+    regions_of, scores = [], []
+    for mask in masks:
+        x, y, width, height = cv2.boundingRect(mask)
+        if width == 0:  # an empty mask
             continue
-        colour, text = _rgba(_score_colour(float(score))), f"{score:.2f}"
-        regions = _outlines(mask, scale_x, scale_y)
-        outlines.extend(_outline_annotation(region, stamp, colour, 2.0, {"score": text}) for region in regions)
+        crop = mask[y : y + height, x : x + width]
+        scores.append(float(refined[y : y + height, x : x + width][crop.view(bool)].mean(dtype=np.float64)))
+        regions_of.append(_outlines(crop, scale_x, scale_y, (x, y), OUTLINE_TOLERANCE_PX))
+    labelled = set(np.argsort(-np.array(scores), kind="stable")[:MASK_LABELS].tolist())
+    outlines, labels = [], []
+    for index, (regions, score) in enumerate(zip(regions_of, scores, strict=True)):
+        colour, text = score_colour(score), f"{score:.2f}"
+        outlines.extend(_outline_annotation(region, stamp, colour, 2.0) for region in regions)
         if index in labelled:
             corner = np.concatenate(regions).min(axis=0)
             labels.append(_label(text, float(corner[0]), float(corner[1]), stamp, colour))
@@ -364,7 +375,7 @@ def truth_annotations(anomaly: np.ndarray, stamp_ns: int) -> dict:
     """The anomaly truth's outlines (label 1) on the camera image, as foxglove.ImageAnnotations."""
     stamp = _time(stamp_ns)
     regions = _outlines(anomaly == 1, 1.0, 1.0)
-    outlines = [_outline_annotation(region, stamp, TRUTH_COLOUR, 3.0, {"label": "anomaly"}) for region in regions]
+    outlines = [_outline_annotation(region, stamp, TRUTH_COLOUR, 3.0) for region in regions]
     labels = [
         _label("anomaly", float(region[:, 0].min()), float(region[:, 1].max()) + 14, stamp, TRUTH_COLOUR)
         for region in regions
