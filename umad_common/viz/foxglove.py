@@ -69,6 +69,7 @@ LINE_LOOP_3D, LINE_LOOP_2D = 1, 2  # foxglove.LinePrimitive / foxglove.PointsAnn
 TRUTH_COLOUR = {"r": 0.1, "g": 1.0, "b": 0.3, "a": 1.0}  # the anomaly truth's outline: green, beside the masks' inferno
 ROUTE_COLOUR = {"r": 0.2, "g": 0.6, "b": 1.0, "a": 1.0}
 OUTLINE_TOLERANCE_PX = 0.7  # a mask's outline, simplified: no pixel of it farther off (in the mask's pixels)
+LABEL_FONT_PX = 12.0
 MASK_LABELS = 5  # masks whose score is written beside them, highest first (as the frame result's top_k)
 MASKS_REMEMBERED = 32  # frames of masks (and of maps waiting for their masks) kept per channel for the join
 INFERNO = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_INFERNO)[:, 0]  # (256, 3) BGR
@@ -337,7 +338,7 @@ def _label(text: str, x: float, y: float, stamp: dict, colour: dict) -> dict:
         "timestamp": stamp,
         "position": {"x": x, "y": y},
         "text": text,
-        "font_size": 12.0,
+        "font_size": LABEL_FONT_PX,
         "text_color": colour,
         "background_color": {"r": 0.0, "g": 0.0, "b": 0.0, "a": 0.6},
     }
@@ -377,7 +378,7 @@ def truth_annotations(anomaly: np.ndarray, stamp_ns: int) -> dict:
     regions = _outlines(anomaly == 1, 1.0, 1.0)
     outlines = [_outline_annotation(region, stamp, TRUTH_COLOUR, 3.0) for region in regions]
     labels = [
-        _label("anomaly", float(region[:, 0].min()), float(region[:, 1].max()) + 14, stamp, TRUTH_COLOUR)
+        _label("anomaly", float(region[:, 0].min()), float(region[:, 1].max()) + LABEL_FONT_PX + 2, stamp, TRUTH_COLOUR)
         for region in regions
     ]
     return {"timestamp": stamp, "circles": [], "points": outlines, "texts": labels, "metadata": []}
