@@ -72,7 +72,10 @@ OUTLINE_TOLERANCE_PX = 0.7  # a mask's outline, simplified: no pixel of it farth
 LABEL_FONT_PX = 12.0
 MASK_LABELS = 5  # masks whose score is written beside them, highest first (as the frame result's top_k)
 MASKS_REMEMBERED = 32  # frames of masks (and of maps waiting for their masks) kept per channel for the join
-INFERNO = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_INFERNO)[:, 0]  # (256, 3) BGR
+INFERNO_BGR = [
+    tuple(int(c) for c in bgr)
+    for bgr in cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_INFERNO)[:, 0]
+]
 
 
 @cache
@@ -106,7 +109,7 @@ def _colour_map(score: np.ndarray) -> np.ndarray:
 
 def _score_bgr(score: float) -> tuple[int, int, int]:
     """A [0, 1] score's inferno colour, BGR."""
-    return tuple(int(c) for c in INFERNO[int(np.clip(score, 0, 1) * 255)])
+    return INFERNO_BGR[min(255, max(0, int(score * 255)))]
 
 
 def score_colour(score: float) -> dict:
@@ -348,8 +351,10 @@ def mask_annotations(refined: np.ndarray, masks: np.ndarray, camera_size: tuple[
     """Each non-empty mask's outline on the camera image of `camera_size` (h, w) in its refined
     score's colour (the score: the refined map's mean over the mask, as the frame result's boxes),
     the score written at the top-left corner of the MASK_LABELS highest-scoring masks, as
-    foxglove.ImageAnnotations. Each mask is read within its bounding box
-    (a frame of label-free masks has a hundred or more), its outline simplified by OUTLINE_TOLERANCE_PX."""
+    foxglove.ImageAnnotations. A frame of label-free masks has a hundred or more, so each mask is
+    read within its bounding box, its outlines are simplified by OUTLINE_TOLERANCE_PX, and its
+    specks (regions whose outline has fewer than 3 corners: a pixel, a one-pixel line) are left out
+    but for a mask that has nothing else."""
     masks = np.ascontiguousarray(resize_nearest(masks.astype(bool, copy=False), refined.shape)).view(np.uint8)
     scale_x, scale_y = camera_size[1] / refined.shape[1], camera_size[0] / refined.shape[0]
     stamp = _time(stamp_ns)
@@ -360,7 +365,8 @@ def mask_annotations(refined: np.ndarray, masks: np.ndarray, camera_size: tuple[
             continue
         crop = mask[y : y + height, x : x + width]
         scores.append(float(refined[y : y + height, x : x + width][crop.view(bool)].mean(dtype=np.float64)))
-        regions_of.append(_outlines(crop, scale_x, scale_y, (x, y), OUTLINE_TOLERANCE_PX))
+        regions = _outlines(crop, scale_x, scale_y, (x, y), OUTLINE_TOLERANCE_PX)
+        regions_of.append([region for region in regions if len(region) >= 3] or regions[:1])
     labelled = set(np.argsort(-np.array(scores), kind="stable")[:MASK_LABELS].tolist())
     outlines, labels = [], []
     for index, (regions, score) in enumerate(zip(regions_of, scores, strict=True)):
