@@ -283,7 +283,7 @@ def test_replay_needs_only_the_log_and_keeps_the_recorded_overrides(tmp_path, hu
     a, b = stats_payloads(first), stats_payloads(second)
     assert len(a) == 7 and a == b  # six frames and the end-of-run marker
     assert all(decode(a[seq]).meta["params"] == {"scale": 2.0} for seq in range(6))
-    assert_foxglove_camera_views(first, frames=6, shape=(64, 96, 3))
+    assert_foxglove_views(first, frames=6, shape=(64, 96, 3))
 
 
 def test_a_frame_with_a_missing_file_travels_as_an_error_and_the_stream_goes_on(tmp_path, hub_endpoint):
@@ -306,23 +306,41 @@ def test_a_frame_with_a_missing_file_travels_as_an_error_and_the_stream_goes_on(
     assert all("x" in m.arrays for m in frames if not m.meta.get("error"))
 
 
-def assert_foxglove_camera_views(log: Path, frames: int, shape: tuple[int, int, int]) -> None:
-    """The log opens in Foxglove: JPEG `foxglove.CompressedImage` JSON messages of the camera."""
+def assert_foxglove_views(log: Path, frames: int, shape: tuple[int, int, int]) -> None:
+    """The log opens in Foxglove: every replayer view is there for every frame, each a JSON message
+    that validates against the vendored official schema; the camera is a JPEG of the camera's size."""
     import base64
 
     import cv2
+    import jsonschema
     import numpy as np
     from mcap.reader import make_reader
 
+    from umad_common.viz.foxglove import schema as foxglove_schema
+
     with open(log, "rb") as f:
         views = [
-            (schema.name, channel.message_encoding, json.loads(message.data))
-            for schema, channel, message in make_reader(f).iter_messages(topics=["viz/replayer/camera"])
+            (channel.topic, schema.name, channel.message_encoding, json.loads(message.data))
+            for schema, channel, message in make_reader(f).iter_messages()
+            if channel.topic.startswith("viz/")
         ]
-    assert len(views) == frames
-    assert {(name, encoding) for name, encoding, _ in views} == {("foxglove.CompressedImage", "json")}
-    picture = cv2.imdecode(np.frombuffer(base64.b64decode(views[0][2]["data"]), np.uint8), cv2.IMREAD_COLOR)
-    assert views[0][2]["format"] == "jpeg" and picture.shape == shape
+    assert Counter((topic, name, encoding) for topic, name, encoding, _ in views) == {
+        (topic, name, "json"): frames
+        for topic, name in [
+            ("viz/replayer/camera", "foxglove.CompressedImage"),
+            ("viz/replayer/lidar", "foxglove.PointCloud"),
+            ("viz/replayer/ego/transform", "foxglove.FrameTransform"),
+            ("viz/replayer/ego/pose", "foxglove.PoseInFrame"),
+            ("viz/replayer/route", "foxglove.SceneUpdate"),
+            ("viz/replayer/truth/anomaly", "foxglove.CompressedImage"),
+            ("viz/replayer/truth/annotations", "foxglove.ImageAnnotations"),
+        ]
+    }
+    for _, name, _, body in views:
+        jsonschema.validate(body, foxglove_schema(name))
+    camera = next(body for topic, _, _, body in views if topic == "viz/replayer/camera")
+    picture = cv2.imdecode(np.frombuffer(base64.b64decode(camera["data"]), np.uint8), cv2.IMREAD_COLOR)
+    assert camera["format"] == "jpeg" and picture.shape == shape
 
 
 def test_truncated_log_says_how_many_messages_were_readable(tmp_path, hub_endpoint):

@@ -4,13 +4,15 @@ Every bus message is stored as its exact payload bytes: one channel per Zenoh ke
 `message_encoding` "msgpack", `sequence` = the frame's seq, `publish_time` = the source stamp. The
 graph and the package version are stored as metadata `umad`; whether the recording is complete (the
 payloads it lost and the frames each channel lacks, see `umad_common/dataflow/recording.py`) as metadata
-`umad_recording`, written when the log is closed. Foxglove views (`viz/...` channels,
-JSON schemas) may sit beside them; replay ignores those.
+`umad_recording`, written when the log is closed. Foxglove views (`viz/...` channels, JSON
+messages of Foxglove's schemas, `umad_common/viz/foxglove.py`) may sit beside them; replay ignores
+those.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import queue
 import threading
 import time
@@ -29,6 +31,8 @@ from umad_common.dataflow.messages import MessageError, decode
 
 RECORDING_METADATA = "umad_recording"  # the recorder's account of what it could not record
 
+log = logging.getLogger("umad.record")
+
 
 class LogError(ValueError):
     """A log that cannot be read (fully): says where it broke and how many messages were readable."""
@@ -46,10 +50,24 @@ def package_version() -> str:
 
 
 class McapRecorder:
-    """Thread-safe writer: `write(key, payload)` from Zenoh callbacks, `close()` once at the end."""
+    """Thread-safe writer: `write(key, payload)` from Zenoh callbacks, `close()` once at the end.
+
+    Args:
+        path: the MCAP file (created).
+        graph_text: the graph, stored in the `umad` metadata.
+        extra_metadata: more of the `umad` metadata.
+        viz: add the Foxglove views of every message (`viz/...` channels), made on a thread of their own.
+        mask_sources: map channel (`op/output`) -> the masks channel that refined it, for the views'
+            mask outlines (`umad_common.viz.foxglove.FoxgloveViews`).
+    """
 
     def __init__(
-        self, path: str | Path, graph_text: str = "", extra_metadata: dict[str, str] | None = None, viz: bool = True
+        self,
+        path: str | Path,
+        graph_text: str = "",
+        extra_metadata: dict[str, str] | None = None,
+        viz: bool = True,
+        mask_sources: dict[str, str] | None = None,
     ):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -62,9 +80,9 @@ class McapRecorder:
         self._lock = threading.Lock()
         self.count = 0
         self._viz_queue: queue.Queue | None = None
-        if viz:  # pictures are encoded off the Zenoh callback thread
+        if viz:  # views are made off the Zenoh callback thread
             self._viz_queue = queue.Queue(maxsize=256)
-            self._viz_thread = threading.Thread(target=self._viz_worker, daemon=True)
+            self._viz_thread = threading.Thread(target=self._viz_worker, args=(mask_sources or {},), daemon=True)
             self._viz_thread.start()
 
     def write(self, key: str, payload: bytes) -> BusMessage | None:
@@ -87,7 +105,7 @@ class McapRecorder:
         return msg
 
     def write_json(self, topic: str, schema_name: str, schema: dict, obj: dict, stamp_ns: int) -> None:
-        """A Foxglove-viewable message: JSON with a JSON schema (e.g. foxglove.RawImage)."""
+        """A Foxglove-viewable message: JSON with a JSON schema (e.g. foxglove.CompressedImage)."""
         with self._lock:
             schema_id = self._schemas.get(schema_name)
             if schema_id is None:
@@ -97,11 +115,15 @@ class McapRecorder:
             channel = self._channels.get(topic)
             if channel is None:
                 channel = self._channels[topic] = self._writer.register_channel(topic, "json", schema_id)
-            self._writer.add_message(channel, time.time_ns(), json.dumps(obj).encode(), stamp_ns, 0)
+            self._writer.add_message(
+                channel, time.time_ns(), json.dumps(obj, separators=(",", ":")).encode(), stamp_ns, 0
+            )
 
-    def _viz_worker(self) -> None:
-        from umad_common.viz.foxglove import COMPRESSED_IMAGE_SCHEMA, compressed_image, views
+    def _viz_worker(self, mask_sources: dict[str, str]) -> None:
+        from umad_common.viz.foxglove import FoxgloveViews, schema
 
+        foxglove = FoxgloveViews(mask_sources)
+        failed: set[str] = set()  # channels whose views failed: logged once each
         while True:
             item = self._viz_queue.get()
             if item is None:
@@ -109,10 +131,18 @@ class McapRecorder:
             key, msg = item
             _, _, rest = key.partition("/")  # drop "umad/"
             op_output = rest.partition("/")[2]
-            for name, picture in views(op_output.rsplit("/", 1)[-1], msg).items():
-                topic = f"viz/{op_output}" + (f"/{name}" if name else "")
-                obj = compressed_image(picture, msg.stamp_ns, f"{msg.run}#{msg.seq}")
-                self.write_json(topic, "foxglove.CompressedImage", COMPRESSED_IMAGE_SCHEMA, obj, msg.stamp_ns)
+            try:
+                for view in foxglove.of(op_output, msg):
+                    self.write_json(view.topic, view.schema, schema(view.schema), view.body, msg.stamp_ns)
+            except Exception:  # a view is a convenience: the exact payload is recorded all the same
+                if op_output not in failed:
+                    failed.add(op_output)
+                    log.exception(
+                        "no Foxglove view of %s %s#%d (later failures on it are not logged)",
+                        op_output,
+                        msg.run,
+                        msg.seq,
+                    )
 
     def close(
         self, drop_views: bool = False, metadata_name: str | None = None, metadata: dict[str, str] | None = None

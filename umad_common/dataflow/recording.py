@@ -62,7 +62,7 @@ class Recording:
     def __init__(self, session: zenoh.Session, graph: Graph, path: Path, metadata: dict[str, str]):
         self.keys = Keys(graph.name)
         self.path = path
-        self.file = McapRecorder(path, metadata.pop("graph", ""), metadata)
+        self.file = McapRecorder(path, metadata.pop("graph", ""), metadata, mask_sources=mask_sources(graph))
         self.sinks = set(graph.sinks())
         self._outputs = {op: [self.keys.data(op, out) for out in cls.outputs] for op, cls in graph.classes.items()}
         self._live: dict[str, set[str]] = {}  # op -> its live replicas, once seen
@@ -272,6 +272,19 @@ class Recording:
     def sweep_gone_rings(self) -> None:
         """Forget the mappings of rings their publishers have left (the launcher swept them)."""
         self._payloads.forget_gone()
+
+
+def mask_sources(graph: Graph) -> dict[str, str]:
+    """Each output (`op/output`) of an operator with a `masks` input -> the masks channel wired to
+    it: the Foxglove views outline a refined map's masks on the camera with their scores."""
+    found = {}
+    for spec in graph.spec.operators:
+        if "masks" not in spec.inputs or spec.id not in graph.classes:
+            continue
+        producers = [producer for source in spec.sources_of("masks") for producer in graph.producers(source)]
+        if len(producers) == 1:
+            found.update({f"{spec.id}/{out}": "/".join(producers[0]) for out in graph.classes[spec.id].outputs})
+    return found
 
 
 def _take_all(waiting: queue.Queue) -> list:
