@@ -7,8 +7,6 @@ worker's only way to the hub is a real network link. Needs root (as CI has); ski
 
 from __future__ import annotations
 
-import os
-import random
 import signal
 import subprocess
 import sys
@@ -22,36 +20,6 @@ from tests.conftest import REPO, free_port, run_umad, start_umad, umad_env
 from tests.test_runtime_e2e import assert_exactly_once, sink_lines, toy_graph
 
 pytestmark = pytest.mark.slow
-
-
-def sh(*cmd: str) -> None:
-    subprocess.run(cmd, check=True, capture_output=True)
-
-
-@pytest.fixture
-def netns():
-    """A namespace `ns` with address 10.23x.y.2, reaching this host at 10.23x.y.1."""
-    if os.geteuid() != 0:
-        pytest.skip("network namespaces need root")
-    tag = f"{os.getpid() % 1000}{random.randint(0, 99)}"
-    net = f"10.{231 + random.randint(0, 3)}.{random.randint(1, 250)}"
-    ns, host_if, ns_if = f"umad{tag}", f"vu{tag}a", f"vu{tag}b"
-    try:
-        sh("ip", "netns", "add", ns)
-    except (subprocess.CalledProcessError, FileNotFoundError) as exc:
-        pytest.skip(f"cannot create a network namespace here: {exc}")
-    try:
-        sh("ip", "link", "add", host_if, "type", "veth", "peer", "name", ns_if)
-        sh("ip", "link", "set", ns_if, "netns", ns)
-        sh("ip", "addr", "add", f"{net}.1/24", "dev", host_if)
-        sh("ip", "link", "set", host_if, "up")
-        sh("ip", "netns", "exec", ns, "ip", "addr", "add", f"{net}.2/24", "dev", ns_if)
-        sh("ip", "netns", "exec", ns, "ip", "link", "set", ns_if, "up")
-        sh("ip", "netns", "exec", ns, "ip", "link", "set", "lo", "up")
-        yield ns, f"{net}.1"
-    finally:
-        subprocess.run(["ip", "netns", "del", ns], capture_output=True)
-        subprocess.run(["ip", "link", "del", host_if], capture_output=True)
 
 
 def in_namespace(ns: str, *args: str) -> subprocess.Popen:

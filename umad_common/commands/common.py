@@ -104,7 +104,13 @@ def connect_to_running_graph(args: argparse.Namespace) -> RunningGraph | None:
     chosen = graphs.get(name) if name else (next(iter(graphs.values())) if len(graphs) == 1 else None)
     if chosen is None:
         session.close()
-        if not graphs:
+        if not graphs and tls is not None:
+            print(
+                f"no graph answered on the hub at {hub}: none runs there, or the hub's access control refused "
+                f"this certificate ({tls.client_cert}); commands need one whose common name has the role control",
+                file=sys.stderr,
+            )
+        elif not graphs:
             print(f"no graph runs on the hub at {hub} (its launcher did not answer)", file=sys.stderr)
         elif name:
             print(f"graph {name!r} does not run on the hub at {hub}; running there: {sorted(graphs)}", file=sys.stderr)

@@ -28,9 +28,10 @@ ACL_LOG_TARGET = "zenoh::net::routing::interceptor::access_control"
 REPEAT_LOG_INTERVAL_S = 10.0  # a refusal that repeats is logged again at most this often, with its count
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 _DECISION = re.compile(
-    r"ThreadId\((?P<thread>\d+)\).*CertCommonName\((?P<name>[^)]*)\).* is (?P<verdict>un)?authorized to "
-    r"(?P<action>.+) \((?P<flow>ingress|egress)\) on (?P<key>\S+)"
+    r"ThreadId\((?P<thread>\d+)\).*: (?P<cached>Using cached result: )?(?P<zid>[0-9a-f]+) (?:on (?P<subject>\S+) )?"
+    r"is (?P<verdict>un)?authorized to (?P<action>.+) \((?P<flow>ingress|egress)\) on (?P<key>\S+)"
 )
+_COMMON_NAME = re.compile(r"CertCommonName\((?P<name>[^)]*)\)")
 _CACHING = re.compile(
     r"ThreadId\((?P<thread>\d+)\).*ACL \((?P<flow>ingress|egress)\): caching permissions for `(?P<key>[^`]*)`"
 )
@@ -42,14 +43,16 @@ class RefusalLog:
 
     When Zenoh first meets a key it caches its permissions and prints one line per message kind for
     it, allowed or not, though nothing was sent; those lines follow a `caching permissions for
-    `KEY`` line on the same thread, each kind once, and are skipped. A refusal that repeats (a
-    process publishing where it may not, frame after frame) is logged once, then with its count at
-    most every REPEAT_LOG_INTERVAL_S."""
+    `KEY`` line on the same thread, each kind once, and are skipped. They name the session's
+    certificate, which later decisions from that cache (`Using cached result: ZID ...`) do not, so
+    the names are kept by Zenoh session id. A refusal that repeats (a process publishing where it may
+    not, frame after frame) is logged once, then with its count at most every REPEAT_LOG_INTERVAL_S."""
 
     def __init__(self, out) -> None:
         self.out = out  # where the hub's other standard output goes
         self._caching: dict[str, tuple[str, str, set[str]]] = {}  # thread -> (flow, key, kinds seen)
         self._repeats: dict[tuple[str, str, str, str], list[float]] = {}  # refusal -> [count since logged, when]
+        self._names: dict[str, str] = {}  # Zenoh session id -> its certificate's common name
 
     def line(self, text: str) -> None:
         plain = _ANSI.sub("", text)
@@ -63,13 +66,18 @@ class RefusalLog:
                 self.out.write(text)
                 self.out.flush()
             return
+        named = _COMMON_NAME.search(decision["subject"] or "")
+        if named:
+            self._names[decision["zid"]] = named["name"]
         block = self._caching.get(decision["thread"])
-        if block and block[:2] == (decision["flow"], decision["key"]) and decision["action"] not in block[2]:
+        in_block = block and not decision["cached"] and block[:2] == (decision["flow"], decision["key"])
+        if in_block and decision["action"] not in block[2]:
             block[2].add(decision["action"])
             return
         self._caching.pop(decision["thread"], None)
         if decision["verdict"]:
-            self._refused(decision["name"], decision["action"], decision["flow"], decision["key"])
+            name = self._names.get(decision["zid"], f"session {decision['zid']} (no certificate name)")
+            self._refused(name, decision["action"], decision["flow"], decision["key"])
 
     def _refused(self, name: str, action: str, flow: str, key: str) -> None:
         refusal = (name, action, flow, key)
