@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from umad_common import DEFAULT_GRAPH
 from umad_common.dataflow.assignments import GraphError, parse_sets
-from umad_common.dataflow.identities import CONTROL, add_certificate_arguments
+from umad_common.dataflow.certificates import CONTROL, add_certificate_arguments
 
 if TYPE_CHECKING:
     from umad_common.dataflow.graph import Graph

@@ -6,7 +6,7 @@ import sys
 
 from umad_common.commands.common import add_connect_argument, add_graph_argument, load_graph_or_exit
 from umad_common.dataflow.assignments import GraphError
-from umad_common.dataflow.identities import add_certificate_arguments
+from umad_common.dataflow.certificates import add_certificate_arguments
 
 
 def add_arguments(parser):

@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from umad_common.dataflow.assignments import GraphError, merge_params
 from umad_common.dataflow.bus import DEFAULT_HUB, TlsConfig
-from umad_common.dataflow.identities import operator_identity
+from umad_common.dataflow.certificates import operator_identity
 from umad_common.dataflow.operator import Operator, Source, UnknownOperatorError, load_operator_class
 from umad_common.dataflow.pacing import SourceParams
 
@@ -131,7 +131,7 @@ class Graph:
         """The graph's TLS settings for one process, paths resolved against `base_dir`.
 
         The process presents `cert`/`key` where given (a host holding only its own certificate), else
-        the certificate named `identity` in the graph's `tls.certs` folder (`identities`), else the hub's (`identity` None: the hub and the launcher)."""
+        the certificate named `identity` in the graph's `tls.certs` folder (`certificates`), else the hub's (`identity` None: the hub and the launcher)."""
         tls = self.spec.tls
         if tls is None:
             return None

@@ -60,10 +60,10 @@ from umad_common.dataflow.bus import (
     close_session,
     open_client,
 )
+from umad_common.dataflow.certificates import add_certificate_arguments, operator_identity
 from umad_common.dataflow.delivery import FrameJoiner, Membership, OutputCache, Stats
 from umad_common.dataflow.exit_codes import EXIT_CONFIG
 from umad_common.dataflow.graph import Graph, load_graph
-from umad_common.dataflow.identities import add_certificate_arguments, operator_identity
 from umad_common.dataflow.mcap_log import LogError
 from umad_common.dataflow.messages import Message, MessageError, decode, encode
 from umad_common.dataflow.operator import Context, Frame, Operator, Output, Source
