@@ -9,6 +9,11 @@ rings, Zenoh carrying references: `payload_ring.py`; replicas linked directly, n
 with `shared_payloads: false` (every payload through Zenoh), and with `direct_links: false` (every
 message through the hub). Their ratios are what the rings and the direct links buy.
 
+What securing the hub costs: the bus with every message through the hub and every payload through
+Zenoh (as for a worker on another host), over plain TCP, over mutual TLS (`tls:`: every process
+presents a certificate of the graph's CA), and over mutual TLS with the hub's access control
+(`security:`, each certificate's role enforced by Zenoh), side by side in one run.
+
 Between in-process and the bus, the floor of a dataflow that moves its payloads through Zenoh: the
 same three processes doing the same work on plain Zenoh sessions (`bare_zenoh`: a publisher, a
 subscriber read on the main thread, the sink's acks straight to the source), without the runtime's
@@ -20,9 +25,11 @@ from __future__ import annotations
 import multiprocessing
 import os
 import queue
+import tempfile
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -33,6 +40,7 @@ from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.dataflow import Frame, Input, Operator, Output, Source, SourceFrame, SourceParams
 from umad_common.dataflow.allocator import keep_freed_memory
 from umad_common.dataflow.bus import open_client, open_hub
+from umad_common.dataflow.certificates import HUB, make_certificates, operator_identity
 from umad_common.dataflow.launcher import OPERATOR_NICENESS
 from umad_common.dataflow.messages import Message, decode, encode
 
@@ -110,6 +118,9 @@ def chain_in_process(frames: int, size_bytes: int) -> dict:
     }
 
 
+CHAIN = ("source", "relay", "sink")
+
+
 def over_bus(
     frames: int,
     size_bytes: int,
@@ -118,9 +129,11 @@ def over_bus(
     shm_pool_mib: int | None = None,
     shared_payloads: bool = True,
     direct_links: bool = True,
+    security: dict | None = None,
 ) -> dict:
     """source -> relay -> sink as three processes on a hub; latency is send-to-ack at the source;
-    CPU is the three processes' from their first frame on (the hub's not counted)."""
+    CPU is the three processes' from their first frame on (the hub's not counted). `security`: the
+    graph's `tls:` and `security:` blocks (`secured`)."""
     result = run_bench_graph(
         {
             "name": "bench",
@@ -128,6 +141,7 @@ def over_bus(
             "shm_pool_mib": shm_pool_mib,
             "shared_payloads": shared_payloads,
             "direct_links": direct_links,
+            **(security or {}),
             "operators": [
                 {
                     "id": "source",
@@ -271,10 +285,54 @@ def _wait_for_subscriber(publisher) -> None:
         time.sleep(0.01)
 
 
+def secured(folder: Path, access_control: bool) -> dict:
+    """The bench graph's `tls:` block, certificates made in `folder`, and with `access_control` its
+    `security:` block giving each operator its own role."""
+    make_certificates(folder, "bench", list(CHAIN), ["localhost", "127.0.0.1"])
+    tls = {"root_ca": "ca.pem", "cert": f"{HUB}.pem", "key": f"{HUB}.key", "certs": "."}
+    blocks: dict = {"tls": {name: str(folder / path) for name, path in tls.items()}}
+    if access_control:
+        roles = {HUB: "launcher"} | {operator_identity(op): f"operator:{op}" for op in CHAIN}
+        blocks["security"] = {"roles": roles}
+    return blocks
+
+
+def bench_security(frames: int, size_bytes: int, hub: str, window: int = 8) -> dict:
+    """The bus through the hub over plain TCP, mutual TLS, and mutual TLS with access control."""
+    tls_hub = "tls/" + hub.partition("/")[2]
+    with tempfile.TemporaryDirectory(prefix="umad-bench-certs-") as scratch:
+        mtls = secured(Path(scratch), access_control=False)
+        mtls_acl = secured(Path(scratch), access_control=True)
+        through_hub = {"shared_payloads": False, "direct_links": False}
+        runs = {
+            "tcp": over_bus(frames, size_bytes, hub, window, **through_hub),
+            "mtls": over_bus(frames, size_bytes, tls_hub, window, **through_hub, security=mtls),
+            "mtls_acl": over_bus(frames, size_bytes, tls_hub, window, **through_hub, security=mtls_acl),
+        }
+    keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame")
+    tcp = runs["tcp"]
+    return {
+        **{f"through_hub_{name}": {k: run[k] for k in keep} for name, run in runs.items()},
+        "fps_ratio_mtls_over_tcp": runs["mtls"]["fps"] / tcp["fps"],
+        "fps_ratio_mtls_acl_over_tcp": runs["mtls_acl"]["fps"] / tcp["fps"],
+        "fps_ratio_mtls_acl_over_mtls": runs["mtls_acl"]["fps"] / runs["mtls"]["fps"],
+        "p50_ratio_mtls_acl_over_tcp": runs["mtls_acl"]["p50_ms"] / tcp["p50_ms"],
+        "cpu_ratio_mtls_acl_over_tcp": runs["mtls_acl"]["cpu_ms_per_frame"] / tcp["cpu_ms_per_frame"],
+    }
+
+
 def bench_bus(
-    frames: int = 2000, size_bytes: int = 1 << 20, hub: str = "tcp/127.0.0.1:7449", shm_pool_mib: int | None = None
+    frames: int = 2000,
+    size_bytes: int = 1 << 20,
+    hub: str = "tcp/127.0.0.1:7449",
+    shm_pool_mib: int | None = None,
+    security_only: bool = False,
 ) -> dict:
-    """`shm_pool_mib`: the graph's `shm_pool_mib` (None: Zenoh's default pool)."""
+    """`shm_pool_mib`: the graph's `shm_pool_mib` (None: Zenoh's default pool). `security_only`: only
+    what securing the hub costs (`bench_security`)."""
+    security = bench_security(frames, size_bytes, hub)
+    if security_only:
+        return {"frames": frames, "frame_bytes": size_bytes, "security": security}
     local = in_process(frames, size_bytes)
     bare = bare_zenoh(frames, size_bytes, hub, window=8)
     bus = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib)
@@ -301,4 +359,5 @@ def bench_bus(
         # two 1 MiB hops (source -> relay -> sink); the small ack back to the source is charged to them
         "p50_ms_added_per_hop_window_1": (bus1["p50_ms"] - local["p50_ms"]) / 2,
         "cpu_ratio_bus_window_8_over_in_process": bus["cpu_ms_per_frame"] / local["cpu_ms_per_frame"],
+        "security": security,
     }
