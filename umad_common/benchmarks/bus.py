@@ -297,27 +297,44 @@ def secured(folder: Path, access_control: bool) -> dict:
     return blocks
 
 
-def bench_security(frames: int, size_bytes: int, hub: str, window: int = 8) -> dict:
-    """The bus through the hub over plain TCP, mutual TLS, and mutual TLS with access control."""
+SECURITY_MODES = ("tcp", "mtls", "mtls_acl")
+
+
+def bench_security(frames: int, size_bytes: int, hub: str, window: int = 8, rounds: int = 3) -> dict:
+    """The bus through the hub over plain TCP, mutual TLS, and mutual TLS with access control, in
+    `rounds` rounds, each running the three in a rotated order, so load from elsewhere falls on
+    each of them alike; per mode the median over rounds, and each round's ratios."""
     tls_hub = "tls/" + hub.partition("/")[2]
+    through_hub = {"shared_payloads": False, "direct_links": False}
+    runs: dict[str, list[dict]] = {mode: [] for mode in SECURITY_MODES}
     with tempfile.TemporaryDirectory(prefix="umad-bench-certs-") as scratch:
-        mtls = secured(Path(scratch), access_control=False)
-        mtls_acl = secured(Path(scratch), access_control=True)
-        through_hub = {"shared_payloads": False, "direct_links": False}
-        runs = {
-            "tcp": over_bus(frames, size_bytes, hub, window, **through_hub),
-            "mtls": over_bus(frames, size_bytes, tls_hub, window, **through_hub, security=mtls),
-            "mtls_acl": over_bus(frames, size_bytes, tls_hub, window, **through_hub, security=mtls_acl),
+        settings = {
+            "tcp": (hub, None),
+            "mtls": (tls_hub, secured(Path(scratch), access_control=False)),
+            "mtls_acl": (tls_hub, secured(Path(scratch), access_control=True)),
         }
+        for round_index in range(rounds):
+            turn = round_index % len(SECURITY_MODES)
+            for mode in SECURITY_MODES[turn:] + SECURITY_MODES[:turn]:
+                endpoint, security = settings[mode]
+                runs[mode].append(over_bus(frames, size_bytes, endpoint, window, **through_hub, security=security))
     keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame")
-    tcp = runs["tcp"]
+    median = {mode: {k: float(np.median([run[k] for run in done])) for k in keep} for mode, done in runs.items()}
+
+    def per_round(mode: str, field: str) -> list[float]:
+        return [a[field] / b[field] for a, b in zip(runs[mode], runs["tcp"], strict=True)]
+
     return {
-        **{f"through_hub_{name}": {k: run[k] for k in keep} for name, run in runs.items()},
-        "fps_ratio_mtls_over_tcp": runs["mtls"]["fps"] / tcp["fps"],
-        "fps_ratio_mtls_acl_over_tcp": runs["mtls_acl"]["fps"] / tcp["fps"],
-        "fps_ratio_mtls_acl_over_mtls": runs["mtls_acl"]["fps"] / runs["mtls"]["fps"],
-        "p50_ratio_mtls_acl_over_tcp": runs["mtls_acl"]["p50_ms"] / tcp["p50_ms"],
-        "cpu_ratio_mtls_acl_over_tcp": runs["mtls_acl"]["cpu_ms_per_frame"] / tcp["cpu_ms_per_frame"],
+        "rounds": rounds,
+        **{f"through_hub_{mode}": values for mode, values in median.items()},
+        "fps_ratio_mtls_over_tcp": median["mtls"]["fps"] / median["tcp"]["fps"],
+        "fps_ratio_mtls_acl_over_tcp": median["mtls_acl"]["fps"] / median["tcp"]["fps"],
+        "fps_ratio_mtls_acl_over_mtls": median["mtls_acl"]["fps"] / median["mtls"]["fps"],
+        "p50_ratio_mtls_acl_over_tcp": median["mtls_acl"]["p50_ms"] / median["tcp"]["p50_ms"],
+        "cpu_ratio_mtls_acl_over_tcp": median["mtls_acl"]["cpu_ms_per_frame"] / median["tcp"]["cpu_ms_per_frame"],
+        "fps_ratio_mtls_over_tcp_per_round": per_round("mtls", "fps"),
+        "fps_ratio_mtls_acl_over_tcp_per_round": per_round("mtls_acl", "fps"),
+        "cpu_ratio_mtls_acl_over_tcp_per_round": per_round("mtls_acl", "cpu_ms_per_frame"),
     }
 
 
