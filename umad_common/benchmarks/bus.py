@@ -154,7 +154,8 @@ def over_bus(
         }
     )
     cpu_s = sum(s.get("process_cpu_s", 0.0) for s in result["stats"].values())
-    return {**result, "cpu_ms_per_frame": 1e3 * cpu_s / frames}
+    hub_cpu_ms = 1e3 * result["hub_cpu_s"] / frames if result["hub_cpu_s"] is not None else float("nan")
+    return {**result, "cpu_ms_per_frame": 1e3 * cpu_s / frames, "hub_cpu_ms_per_frame": hub_cpu_ms}
 
 
 BARE_READY_TIMEOUT_S = 30.0
@@ -303,7 +304,9 @@ SECURITY_MODES = ("tcp", "mtls", "mtls_acl")
 def bench_security(frames: int, size_bytes: int, hub: str, window: int = 8, rounds: int = 3) -> dict:
     """The bus through the hub over plain TCP, mutual TLS, and mutual TLS with access control, in
     `rounds` rounds, each running the three in a rotated order, so load from elsewhere falls on
-    each of them alike; per mode the median over rounds, and each round's ratios."""
+    each of them alike; per mode the median over rounds, and each round's ratios. The hub, which
+    decrypts, checks and encrypts every message, is measured too (`hub_cpu_ms_per_frame`: its CPU
+    over its life, start-up included, per frame)."""
     tls_hub = "tls/" + hub.partition("/")[2]
     through_hub = {"shared_payloads": False, "direct_links": False}
     runs: dict[str, list[dict]] = {mode: [] for mode in SECURITY_MODES}
@@ -318,7 +321,7 @@ def bench_security(frames: int, size_bytes: int, hub: str, window: int = 8, roun
             for mode in SECURITY_MODES[turn:] + SECURITY_MODES[:turn]:
                 endpoint, security = settings[mode]
                 runs[mode].append(over_bus(frames, size_bytes, endpoint, window, **through_hub, security=security))
-    keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame")
+    keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame", "hub_cpu_ms_per_frame")
     median = {mode: {k: float(np.median([run[k] for run in done])) for k in keep} for mode, done in runs.items()}
 
     def per_round(mode: str, field: str) -> list[float]:
@@ -332,6 +335,9 @@ def bench_security(frames: int, size_bytes: int, hub: str, window: int = 8, roun
         "fps_ratio_mtls_acl_over_mtls": median["mtls_acl"]["fps"] / median["mtls"]["fps"],
         "p50_ratio_mtls_acl_over_tcp": median["mtls_acl"]["p50_ms"] / median["tcp"]["p50_ms"],
         "cpu_ratio_mtls_acl_over_tcp": median["mtls_acl"]["cpu_ms_per_frame"] / median["tcp"]["cpu_ms_per_frame"],
+        "hub_cpu_ratio_mtls_over_tcp": median["mtls"]["hub_cpu_ms_per_frame"] / median["tcp"]["hub_cpu_ms_per_frame"],
+        "hub_cpu_ratio_mtls_acl_over_tcp": median["mtls_acl"]["hub_cpu_ms_per_frame"]
+        / median["tcp"]["hub_cpu_ms_per_frame"],
         "fps_ratio_mtls_over_tcp_per_round": per_round("mtls", "fps"),
         "fps_ratio_mtls_acl_over_tcp_per_round": per_round("mtls_acl", "fps"),
         "cpu_ratio_mtls_acl_over_tcp_per_round": per_round("mtls_acl", "cpu_ms_per_frame"),

@@ -131,7 +131,8 @@ class Graph:
         """The graph's TLS settings for one process, paths resolved against `base_dir`.
 
         The process presents `cert`/`key` where given (a host holding only its own certificate), else
-        the certificate named `identity` in the graph's `tls.certs` folder (`certificates`), else the hub's (`identity` None: the hub and the launcher)."""
+        the certificate named `identity` (`umad_common.dataflow.certificates`) in the graph's
+        `tls.certs` folder; `identity` None: the hub's, which the launcher presents too."""
         tls = self.spec.tls
         if tls is None:
             return None

@@ -97,6 +97,15 @@ class ProgressLine:
         return f"{done}/{total} frames ({100 * done / max(total, 1):.0f} %), {rate:.2f} frames/s{left}"
 
 
+def process_cpu_s(pid: int) -> float | None:
+    """CPU seconds (user + system) process `pid` has used so far; None where /proc cannot say."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime: fields 14, 15
+
+
 class Launcher:
     def __init__(
         self,
@@ -113,6 +122,7 @@ class Launcher:
     ):
         self.quiet = quiet
         self.hub_replica: Replica | None = None
+        self.hub_cpu_s: float | None = None  # the hub process's CPU over its life, read as it is stopped
         self.tails: dict[str, deque[str]] = defaultdict(lambda: deque(maxlen=30))
         self.graph = graph
         self.graph_file = Path(graph_file)
@@ -267,6 +277,7 @@ class Launcher:
 
     def _stop_hub(self, grace_s: float) -> None:
         if self.hub_replica is not None and self.hub_replica.proc is not None:
+            self.hub_cpu_s = process_cpu_s(self.hub_replica.proc.pid)
             self.hub_replica.proc.send_signal(signal.SIGTERM)
             try:
                 self.hub_replica.proc.wait(timeout=0 if self._hurry.is_set() else grace_s)
