@@ -6,9 +6,11 @@ import argparse
 import os
 import random
 import shlex
+import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 from pathlib import Path
 
@@ -79,9 +81,16 @@ def sh(*cmd: str) -> None:
     subprocess.run(cmd, check=True, capture_output=True)
 
 
+def namespace_ring_dir(ns: str) -> Path:
+    """The other "host"'s own /dev/shm for payload rings (`UMAD_RING_DIR`): a namespace shares this
+    host's files, and a worker that mapped the hub host's rings would never fetch a payload."""
+    return Path(tempfile.gettempdir()) / f"{ns}-rings"
+
+
 @pytest.fixture
 def netns():
-    """A namespace `ns` with address 10.23x.y.2, reaching this host at 10.23x.y.1."""
+    """A namespace `ns` with address 10.23x.y.2, reaching this host at 10.23x.y.1, and a folder of its
+    own for payload rings (`namespace_ring_dir`)."""
     if os.geteuid() != 0:
         pytest.skip("network namespaces need root")
     tag = f"{os.getpid() % 1000}{random.randint(0, 99)}"
@@ -99,7 +108,9 @@ def netns():
         sh("ip", "netns", "exec", ns, "ip", "addr", "add", f"{net}.2/24", "dev", ns_if)
         sh("ip", "netns", "exec", ns, "ip", "link", "set", ns_if, "up")
         sh("ip", "netns", "exec", ns, "ip", "link", "set", "lo", "up")
+        namespace_ring_dir(ns).mkdir()
         yield ns, f"{net}.1"
     finally:
         subprocess.run(["ip", "netns", "del", ns], capture_output=True)
         subprocess.run(["ip", "link", "del", host_if], capture_output=True)
+        shutil.rmtree(namespace_ring_dir(ns), ignore_errors=True)

@@ -16,16 +16,17 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.conftest import REPO, free_port, run_umad, start_umad, umad_env
+from tests.conftest import REPO, free_port, namespace_ring_dir, run_umad, start_umad, umad_env
 from tests.test_runtime_e2e import assert_exactly_once, sink_lines, toy_graph
 
 pytestmark = pytest.mark.slow
 
 
 def in_namespace(ns: str, *args: str) -> subprocess.Popen:
-    """`umad ARGS` started on the other "host"."""
+    """`umad ARGS` started on the other "host", with its own folder for payload rings."""
     cmd = ["ip", "netns", "exec", ns, sys.executable, "-m", "umad_common.cli", *args]
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=umad_env(), cwd=REPO)
+    env = {**umad_env(), "UMAD_RING_DIR": str(namespace_ring_dir(ns))}
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=REPO)
 
 
 def remote_worker(ns: str, graph: Path, op: str, replica: int, connect: str, *extra: str) -> subprocess.Popen:
@@ -76,12 +77,16 @@ def test_hub_requiring_tls_serves_a_remote_worker_with_the_graphs_certificate(tm
     ns, host_ip = netns
     port = free_port()
     graph = secure_graph(tmp_path, host_ip, port, frames=100, delay=0.03)
+    data = yaml.safe_load(graph.read_text())
+    data["operators"][0]["params"]["size"] = 1 << 15  # 128 KiB frames: in the source's ring, fetched from afar
+    graph.write_text(yaml.safe_dump(data, sort_keys=False))
     # A plain-TCP client gets nothing from a TLS hub.
     plain = remote_worker(ns, graph, "double", 2, f"tcp/{host_ip}:{port}")
     out, worker_out = run_with_remote_replica(tmp_path, ns, graph, f"tls/{host_ip}:{port}")
     plain.send_signal(signal.SIGKILL)
     plain_out, _ = plain.communicate(timeout=30)
     assert frames_done_by(worker_out) > 0, worker_out
+    assert "could not be fetched" not in worker_out  # its payload queries pass the hub's rules
     assert "stopped after" not in plain_out
     assert "access control refused" not in out  # the graph's own traffic passes the hub's rules
     assert_exactly_once(tmp_path, 100)
