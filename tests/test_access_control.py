@@ -118,7 +118,9 @@ def test_an_operator_certificate_cannot_command_nor_publish_as_another_operator(
     assert_exactly_once(tmp_path, 80)
 
 
-def test_an_observer_reads_every_channel_and_cannot_publish_and_control_sets_a_parameter(tmp_path, netns):
+def test_an_observer_reads_every_channel_and_cannot_publish_and_control_reaches_the_operators_and_launcher(
+    tmp_path, netns
+):
     ns, host_ip = netns
     port = free_port()
     hub = f"tls/{host_ip}:{port}"
@@ -127,8 +129,10 @@ def test_an_observer_reads_every_channel_and_cannot_publish_and_control_sets_a_p
     wait_for_frames(tmp_path)
     observer = remote_client(ns, "observe", hub, tmp_path / "certs", "observer", seconds=3)
     control = in_namespace(ns, "set", "double.factor=2", "--graph", str(graph))  # `control` of tls.certs
+    start = in_namespace(ns, "op", "start", "double", "--graph", str(graph))
     seen = json.loads(finished(observer)[1].splitlines()[-1])["seen"]
     control_code, control_out = finished(control)
+    start_code, start_out = finished(start)
     out = launch.wait(timeout=180)
 
     assert launch.proc.returncode == 0, out
@@ -137,4 +141,5 @@ def test_an_observer_reads_every_channel_and_cannot_publish_and_control_sets_a_p
     assert {"umad/toy/_ack"} <= set(seen) and any(key.startswith("umad/toy/_stats/") for key in seen), seen
     assert "access control refused observer: Put (ingress) on umad/toy/source/value" in out, out
     assert control_code == 0 and "double.r0: applied" in control_out, control_out
+    assert start_code == 1 and "double: refused: double is already running" in start_out, start_out  # it got there
     assert_exactly_once(tmp_path, 60)
