@@ -84,7 +84,7 @@ def connect_to_running_graph(args: argparse.Namespace) -> RunningGraph | None:
     """The graph running on the hub (`--connect`, else the `--graph` file's hub, else the default
     one), or None after saying why not: no hub there, it refused our certificate (a TLS graph: the
     `control` one of its `tls.certs`, or `--cert/--key`), no graph on it, or several and none named."""
-    from umad_common.dataflow.bus import DEFAULT_HUB, HubRefusedError, Keys, ask, open_client
+    from umad_common.dataflow.bus import DEFAULT_HUB, HubJoinError, Keys, ask, open_client
 
     name, hub, tls = None, DEFAULT_HUB, None
     if args.graph:
@@ -94,7 +94,7 @@ def connect_to_running_graph(args: argparse.Namespace) -> RunningGraph | None:
     hub = args.connect or hub
     try:
         session = open_client(hub, tls, timeout_s=CONNECT_TIMEOUT_S, retry=False)
-    except HubRefusedError as exc:
+    except HubJoinError as exc:
         print(exc, file=sys.stderr)
         return None
     if session is None:

@@ -45,8 +45,9 @@ class TlsConfig:
     client_key: str | None = None
 
 
-class HubRefusedError(ConnectionError):
-    """The hub's port answers but the TLS handshake fails: a certificate one side does not accept."""
+class HubJoinError(ConnectionError):
+    """This process cannot join a TLS hub: a certificate file of its own is missing, or the hub's port
+    answers but the handshake fails (a certificate one side does not accept)."""
 
 
 def zenoh_config(
@@ -109,15 +110,19 @@ def _port_answers(endpoint: str) -> bool:
 
 
 def check_tls_handshake(endpoint: str, tls: TlsConfig) -> None:
-    """Raise HubRefusedError where the hub at `endpoint` listens but the TLS handshake fails; return
-    where it succeeds or nothing listens yet (the caller waits for the hub then). Zenoh's own error
-    does not say why, and a client that keeps retrying a hub that refuses it would wait forever."""
+    """Raise HubJoinError where a certificate file of ours is missing, or the hub at `endpoint`
+    listens but the TLS handshake fails; return where it succeeds or nothing listens yet (the caller
+    waits for the hub then). Zenoh's own error does not say why, and a client that keeps retrying a
+    hub that refuses it would wait for ever."""
+    for what, path in (("CA certificate", tls.root_ca), ("certificate", tls.client_cert), ("key", tls.client_key)):
+        if path and not Path(path).is_file():
+            raise HubJoinError(f"this process's {what} {path} for the hub at {endpoint} is not a file")
     try:
         probe = zenoh.open(zenoh_config("client", connect=[endpoint], tls=tls, shared_memory=False, retry=False))
     except zenoh.ZError:
         if _port_answers(endpoint):
             own = tls.client_cert or "no certificate (give --cert/--key, or tls.certs in the graph)"
-            raise HubRefusedError(
+            raise HubJoinError(
                 f"the hub at {endpoint} refused the TLS handshake: it accepts only certificates signed by "
                 f"the graph's CA, and this process presented {own} (or the hub's certificate is not signed "
                 f"by {tls.root_ca})"
@@ -148,7 +153,7 @@ def open_client(
     it gives up after `timeout_s`: returns None then. `shared_memory=False` for a session that
     outlives the processes it sweeps up after (the launcher): a segment it maps could never go.
     `retry=False`: no hub listening returns None at once. `shm_pool_mib` as in `zenoh_config`.
-    Raises HubRefusedError where the hub listens but refuses this process's certificate.
+    Raises HubJoinError where this process cannot join a TLS hub (`check_tls_handshake`).
     """
     if tls is not None:
         check_tls_handshake(endpoint, tls)

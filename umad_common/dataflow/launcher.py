@@ -32,7 +32,7 @@ from pathlib import Path
 import zenoh
 
 from umad_common.dataflow.access import access_control
-from umad_common.dataflow.bus import HubRefusedError, Keys, answer, cleanup_stale_shm, close_session, open_client
+from umad_common.dataflow.bus import HubJoinError, Keys, answer, cleanup_stale_shm, close_session, open_client
 from umad_common.dataflow.exit_codes import EXIT_CONFIG, EXIT_INCOMPLETE, EXIT_STOPPED
 from umad_common.dataflow.graph import Graph, GraphError, OperatorSpec, load_graph
 from umad_common.dataflow.mcap_log import describe_loss
@@ -333,7 +333,7 @@ class Launcher:
         try:
             taken = open_client(self.hub, tls, retry=False, timeout_s=HUB_CONNECT_TIMEOUT_S, shared_memory=False)
             listening = taken is not None
-        except HubRefusedError:  # a TLS hub that does not take our certificate
+        except HubJoinError:  # a TLS hub that does not take our certificate
             taken, listening = None, True
         if listening:  # our hub could not listen there, and our replicas would join that one
             if taken is not None:
@@ -350,7 +350,7 @@ class Launcher:
         refused = None
         try:
             hub = open_client(self.hub, tls, cancel=self._stop, timeout_s=HUB_CONNECT_TIMEOUT_S, shared_memory=False)
-        except HubRefusedError as exc:  # the hub's certificate and ours are not of one CA
+        except HubJoinError as exc:  # the hub's certificate and ours are not of one CA
             hub, refused = None, exc
         if hub is None:
             for sig, handler in previous.items():

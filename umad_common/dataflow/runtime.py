@@ -53,7 +53,7 @@ from threadpoolctl import threadpool_limits
 from umad_common.dataflow.allocator import keep_freed_memory
 from umad_common.dataflow.assignments import GraphError, merge_params, parse_sets
 from umad_common.dataflow.bus import (
-    HubRefusedError,
+    HubJoinError,
     Keys,
     ShutdownSignal,
     answer,
@@ -772,7 +772,7 @@ def run_operator(
             shm_pool_mib=graph.spec.shm_pool_mib,
             direct_links=local and graph.spec.direct_links and tls is None,
         )
-    except HubRefusedError as exc:
+    except HubJoinError as exc:
         log.error("operator %s could not join: %s", op_id, exc)
         _exit(EXIT_CONFIG)
     if session is None:
