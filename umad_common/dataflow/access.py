@@ -12,8 +12,8 @@ the hub to it; key layout in docs/design.md):
   prefix; fetches payloads of its inputs' producers;
 - `control` asks `_ctl` (`umad set`, `umad op start|stop`) and `_graph`;
 - `observer` reads every channel, liveliness, `_graph`, and fetches payloads; publishes nothing;
-- `launcher` (the hub certificate: the launcher, its recorder, the sources' acks it sends) may do
-  everything in the graph.
+- `launcher` (the hub certificate, which the launcher and its recorder present) may do everything
+  in the graph.
 
 Acks, goodbyes and stats carry the sender in their payload, not in their key, so an operator could
 still write a false one there; frames, commands and payloads are bound to their operator by key.
