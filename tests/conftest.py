@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 import os
+import random
 import shlex
+import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 from pathlib import Path
 
@@ -72,3 +75,42 @@ def readme_recipe(verb: str, command) -> tuple[argparse.Namespace, list[str]]:
 @pytest.fixture
 def hub_endpoint() -> str:
     return f"tcp/127.0.0.1:{free_port()}"
+
+
+def sh(*cmd: str) -> None:
+    subprocess.run(cmd, check=True, capture_output=True)
+
+
+def namespace_ring_dir(ns: str) -> Path:
+    """The other "host"'s own /dev/shm for payload rings (`UMAD_RING_DIR`): a namespace shares this
+    host's files, and a worker that mapped the hub host's rings would never fetch a payload."""
+    return Path(tempfile.gettempdir()) / f"{ns}-rings"
+
+
+@pytest.fixture
+def netns():
+    """A namespace `ns` with address 10.23x.y.2, reaching this host at 10.23x.y.1, and a folder of its
+    own for payload rings (`namespace_ring_dir`)."""
+    if os.geteuid() != 0:
+        pytest.skip("network namespaces need root")
+    tag = f"{os.getpid() % 1000}{random.randint(0, 99)}"
+    net = f"10.{231 + random.randint(0, 3)}.{random.randint(1, 250)}"
+    ns, host_if, ns_if = f"umad{tag}", f"vu{tag}a", f"vu{tag}b"
+    try:
+        sh("ip", "netns", "add", ns)
+    except (subprocess.CalledProcessError, FileNotFoundError) as exc:
+        pytest.skip(f"cannot create a network namespace here: {exc}")
+    try:
+        sh("ip", "link", "add", host_if, "type", "veth", "peer", "name", ns_if)
+        sh("ip", "link", "set", ns_if, "netns", ns)
+        sh("ip", "addr", "add", f"{net}.1/24", "dev", host_if)
+        sh("ip", "link", "set", host_if, "up")
+        sh("ip", "netns", "exec", ns, "ip", "addr", "add", f"{net}.2/24", "dev", ns_if)
+        sh("ip", "netns", "exec", ns, "ip", "link", "set", ns_if, "up")
+        sh("ip", "netns", "exec", ns, "ip", "link", "set", "lo", "up")
+        namespace_ring_dir(ns).mkdir()
+        yield ns, f"{net}.1"
+    finally:
+        subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+        subprocess.run(["ip", "link", "del", host_if], capture_output=True)
+        shutil.rmtree(namespace_ring_dir(ns), ignore_errors=True)

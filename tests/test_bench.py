@@ -33,7 +33,7 @@ def test_differences_and_predictors_benches_measure_every_metric_and_both_models
     assert all(predictors[f"threads_{n}"][k] > 0 for n in (1, 2) for k in ("world_model_fps", "mnad_fps"))
 
 
-def test_bus_bench_measures_the_runtime_against_bare_zenoh_and_one_process(tmp_path, hub_endpoint):
+def test_bus_bench_measures_the_runtime_against_bare_zenoh_one_process_and_a_secured_hub(tmp_path, hub_endpoint):
     """All sides of the bus bench run on a loopback hub and come back in the report."""
     out = tmp_path / "bench.json"
     assert umad_main(["bench", "bus", "--frames", "24", "--hub", hub_endpoint, "--out", str(out)]) == 0
@@ -52,6 +52,14 @@ def test_bus_bench_measures_the_runtime_against_bare_zenoh_and_one_process(tmp_p
         bus["bus_window_8"]["fps"] / bus["bus_window_8_through_hub"]["fps"]
     )
     assert "| bus | bare_zenoh_window_8.fps |" in out.with_suffix(".md").read_text()
+    security = bus["security"]
+    for mode in ("tcp", "mtls", "mtls_acl"):
+        side = security[f"through_sockets_{mode}"]
+        assert side["fps"] > 0 and side["cpu_ms_per_frame"] > 0 and side["hub_cpu_ms_per_frame"] > 0, mode
+    assert security["fps_ratio_mtls_acl_over_tcp"] == pytest.approx(
+        security["through_sockets_mtls_acl"]["fps"] / security["through_sockets_tcp"]["fps"]
+    )
+    assert len(security["fps_ratio_mtls_acl_over_tcp_per_round"]) == security["rounds"] == 3
 
 
 @pytest.mark.slow

@@ -1,4 +1,5 @@
-"""Across hosts: a worker in another network namespace joins the hub over TCP; the hub can require TLS.
+"""Across hosts: a worker in another network namespace joins the hub over TCP; the hub can require
+mutual TLS (tests/test_access_control.py: who gets in, and what each certificate may do).
 
 The second "host" is a network namespace joined to this one by a veth pair (iproute2), so the
 worker's only way to the hub is a real network link. Needs root (as CI has); skipped otherwise.
@@ -6,8 +7,6 @@ worker's only way to the hub is a real network link. Needs root (as CI has); ski
 
 from __future__ import annotations
 
-import os
-import random
 import signal
 import subprocess
 import sys
@@ -17,62 +16,23 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.conftest import REPO, free_port, start_umad, umad_env
+from tests.conftest import REPO, free_port, namespace_ring_dir, run_umad, start_umad, umad_env
 from tests.test_runtime_e2e import assert_exactly_once, sink_lines, toy_graph
 
 pytestmark = pytest.mark.slow
 
 
-def sh(*cmd: str) -> None:
-    subprocess.run(cmd, check=True, capture_output=True)
+def in_namespace(ns: str, *args: str) -> subprocess.Popen:
+    """`umad ARGS` started on the other "host", with its own folder for payload rings."""
+    cmd = ["ip", "netns", "exec", ns, sys.executable, "-m", "umad_common.cli", *args]
+    env = {**umad_env(), "UMAD_RING_DIR": str(namespace_ring_dir(ns))}
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=REPO)
 
 
-@pytest.fixture
-def netns():
-    """A namespace `ns` with address 10.23x.y.2, reaching this host at 10.23x.y.1."""
-    if os.geteuid() != 0:
-        pytest.skip("network namespaces need root")
-    tag = f"{os.getpid() % 1000}{random.randint(0, 99)}"
-    net = f"10.{231 + random.randint(0, 3)}.{random.randint(1, 250)}"
-    ns, host_if, ns_if = f"umad{tag}", f"vu{tag}a", f"vu{tag}b"
-    try:
-        sh("ip", "netns", "add", ns)
-    except (subprocess.CalledProcessError, FileNotFoundError) as exc:
-        pytest.skip(f"cannot create a network namespace here: {exc}")
-    try:
-        sh("ip", "link", "add", host_if, "type", "veth", "peer", "name", ns_if)
-        sh("ip", "link", "set", ns_if, "netns", ns)
-        sh("ip", "addr", "add", f"{net}.1/24", "dev", host_if)
-        sh("ip", "link", "set", host_if, "up")
-        sh("ip", "netns", "exec", ns, "ip", "addr", "add", f"{net}.2/24", "dev", ns_if)
-        sh("ip", "netns", "exec", ns, "ip", "link", "set", ns_if, "up")
-        sh("ip", "netns", "exec", ns, "ip", "link", "set", "lo", "up")
-        yield ns, f"{net}.1"
-    finally:
-        subprocess.run(["ip", "netns", "del", ns], capture_output=True)
-        subprocess.run(["ip", "link", "del", host_if], capture_output=True)
-
-
-def remote_worker(ns: str, graph: Path, op: str, replica: int, connect: str) -> subprocess.Popen:
-    cmd = [
-        "ip",
-        "netns",
-        "exec",
-        ns,
-        sys.executable,
-        "-m",
-        "umad_common.cli",
-        "op",
-        "run",
-        op,
-        "--graph",
-        str(graph),
-        "--replica",
-        str(replica),
-        "--connect",
-        connect,
-    ]
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=umad_env(), cwd=REPO)
+def remote_worker(ns: str, graph: Path, op: str, replica: int, connect: str, *extra: str) -> subprocess.Popen:
+    return in_namespace(
+        ns, "op", "run", op, "--graph", str(graph), "--replica", str(replica), "--connect", connect, *extra
+    )
 
 
 def run_with_remote_replica(tmp_path: Path, ns: str, graph: Path, connect: str) -> tuple[str, str]:
@@ -102,62 +62,31 @@ def test_worker_in_another_namespace_joins_over_tcp_and_takes_frames(tmp_path, n
     assert_exactly_once(tmp_path, 100)
 
 
-def make_certificates(folder: Path, host_ip: str) -> None:
-    def openssl(*args):
-        subprocess.run(["openssl", *args], check=True, capture_output=True, cwd=folder)
-
-    openssl(
-        "req",
-        "-x509",
-        "-newkey",
-        "rsa:2048",
-        "-nodes",
-        "-keyout",
-        "ca.key",
-        "-out",
-        "ca.pem",
-        "-days",
-        "1",
-        "-subj",
-        "/CN=umad-test-ca",
-    )
-    openssl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", "hub.key", "-out", "hub.csr", "-subj", "/CN=localhost")
-    (folder / "ext.cnf").write_text(
-        f"subjectAltName=DNS:localhost,IP:127.0.0.1,IP:{host_ip}\nbasicConstraints=CA:FALSE\n"
-    )
-    openssl(
-        "x509",
-        "-req",
-        "-in",
-        "hub.csr",
-        "-CA",
-        "ca.pem",
-        "-CAkey",
-        "ca.key",
-        "-CAcreateserial",
-        "-out",
-        "hub.pem",
-        "-days",
-        "1",
-        "-extfile",
-        "ext.cnf",
-    )
+def secure_graph(tmp_path: Path, host_ip: str, port: int, frames: int, delay: float) -> Path:
+    """The toy graph over mutual TLS with access control, certificates made by `umad certs` as the
+    README says: its printed `tls:` and `security:` blocks appended to the graph file."""
+    graph = toy_graph(tmp_path, f"tls/{host_ip}:{port}", frames=frames, delay=delay, replicas=1)
+    made = run_umad("certs", str(graph), "--out", str(tmp_path / "certs"))
+    assert made.returncode == 0, made.stderr
+    blocks = yaml.safe_load(made.stdout.split("\n", 1)[1])
+    graph.write_text(yaml.safe_dump({**yaml.safe_load(graph.read_text()), **blocks}, sort_keys=False))
+    return graph
 
 
-def test_hub_requiring_tls_serves_a_remote_worker_with_the_right_ca(tmp_path, netns):
+def test_hub_requiring_tls_serves_a_remote_worker_with_the_graphs_certificate(tmp_path, netns):
     ns, host_ip = netns
-    make_certificates(tmp_path, host_ip)
     port = free_port()
-    hub = f"tls/{host_ip}:{port}"
-    graph = toy_graph(tmp_path, hub, frames=100, delay=0.03, replicas=1)
+    graph = secure_graph(tmp_path, host_ip, port, frames=100, delay=0.03)
     data = yaml.safe_load(graph.read_text())
-    data["tls"] = {"root_ca": "ca.pem", "cert": "hub.pem", "key": "hub.key"}
+    data["operators"][0]["params"]["size"] = 1 << 15  # 128 KiB frames: in the source's ring, fetched from afar
     graph.write_text(yaml.safe_dump(data, sort_keys=False))
     # A plain-TCP client gets nothing from a TLS hub.
     plain = remote_worker(ns, graph, "double", 2, f"tcp/{host_ip}:{port}")
-    out, worker_out = run_with_remote_replica(tmp_path, ns, graph, hub)
+    out, worker_out = run_with_remote_replica(tmp_path, ns, graph, f"tls/{host_ip}:{port}")
     plain.send_signal(signal.SIGKILL)
     plain_out, _ = plain.communicate(timeout=30)
     assert frames_done_by(worker_out) > 0, worker_out
+    assert "could not be fetched" not in worker_out  # its payload queries pass the hub's rules
     assert "stopped after" not in plain_out
+    assert "access control refused" not in out  # the graph's own traffic passes the hub's rules
     assert_exactly_once(tmp_path, 100)

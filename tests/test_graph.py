@@ -112,7 +112,8 @@ def test_missing_file_and_bad_yaml(tmp_path):
 
 
 def test_check_names_missing_interpreters_and_tls_files_but_workers_load_the_graph(tmp_path):
-    data = graph(SOURCE, {**SCALE, "python": "nowhere/bin/python"}, SINK, tls={"root_ca": "ca.pem"})
+    tls = {"root_ca": "ca.pem", "cert": "hub.pem", "key": "hub.key", "certs": "certs"}
+    data = graph(SOURCE, {**SCALE, "python": "nowhere/bin/python"}, SINK, tls=tls)
     path = tmp_path / "g.yaml"
     path.write_text(yaml.safe_dump(data))
     load_graph(path)  # a worker elsewhere needs neither the other environment nor this machine's files
@@ -120,6 +121,29 @@ def test_check_names_missing_interpreters_and_tls_files_but_workers_load_the_gra
     assert result.returncode == 1
     assert f"python interpreter {tmp_path / 'nowhere/bin/python'} not found" in result.stderr
     assert f"tls.root_ca: {tmp_path / 'ca.pem'} not found" in result.stderr
+    assert f"operator 'scale': certificate {tmp_path / 'certs/op-scale.pem'} not found (tls.certs)" in result.stderr
+
+
+TLS = {"root_ca": "ca.pem", "cert": "hub.pem", "key": "hub.key"}
+
+
+def test_security_without_tls_is_refused_naming_what_is_missing():
+    found = problems(graph(SOURCE, SCALE, SINK, security={"roles": {"hub": "launcher"}}))
+    assert "security: roles are given by certificate, so the graph needs a tls: block" in found
+    assert "tls/HOST:PORT hub" in found
+
+
+def test_security_roles_name_known_roles_and_operators_and_the_launcher():
+    roles = {"alice": "admin", "op-x": "operator:nope", "op-src": "operator:src"}
+    found = problems(graph(SOURCE, SCALE, SINK, hub="tls/127.0.0.1:7447", tls=TLS, security={"roles": roles}))
+    assert (
+        "security.roles.alice: unknown role 'admin'; expected one of launcher, control, observer or operator:<id>"
+        in found
+    )
+    assert "security.roles.op-x: 'operator:nope' names no operator of the graph" in found
+    assert "security.roles: no common name has the role launcher" in found
+    tcp = graph(SOURCE, SCALE, SINK, tls=TLS, security={"roles": {"hub": "launcher"}})
+    assert "is not a tls/HOST:PORT endpoint, so no certificate is checked" in problems(tcp)
 
 
 REPLAYER = {"id": "replayer", "kind": "replayer", "params": {"source": "."}}

@@ -136,7 +136,9 @@ def test_a_payload_the_recorder_cannot_read_is_counted_and_the_log_says_so(tmp_p
         acks: list[dict] = []
         ack_sub = publisher.declare_subscriber(keys.ack, lambda s: acks.append(msgpack.unpackb(s.payload.to_bytes())))
         recording = Recording(launcher, graph, tmp_path / "run.mcap", {"graph": "name: toy", "base_dir": "."})
-        ring = PayloadRing(keys.root, tmp_path / "elsewhere")  # a ring the recorder cannot map, nobody serves
+        ring = PayloadRing(
+            keys.payload("source"), tmp_path / "elsewhere"
+        )  # a ring the recorder cannot map, nobody serves
         (tmp_path / "elsewhere").mkdir()
         camera = encode(Message("run0", 0, 0, "source", {}, {"x": np.zeros(1 << 17, np.uint8)}))
         publisher.put(keys.data("source", "value"), ring.pack(camera))

@@ -18,6 +18,7 @@ from umad_common.dataflow.exit_codes import EXIT_STOPPED
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("launch",): ("umad_common.commands.launch", "start the graph: hub plus one process per operator replica"),
     ("graph", "check"): ("umad_common.commands.graph_check", "validate a graph.yaml"),
+    ("certs",): ("umad_common.commands.certs", "a CA and certificates for a graph over mutual TLS"),
     ("op", "run"): ("umad_common.commands.op_run", "run one operator and join a running graph"),
     ("op", "start"): ("umad_common.commands.op_control", "start an operator in a running graph"),
     ("op", "stop"): ("umad_common.commands.op_control", "stop an operator in a running graph"),

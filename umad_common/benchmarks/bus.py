@@ -9,6 +9,12 @@ rings, Zenoh carrying references: `payload_ring.py`; replicas linked directly, n
 with `shared_payloads: false` (every payload through Zenoh), and with `direct_links: false` (every
 message through the hub). Their ratios are what the rings and the direct links buy.
 
+What securing the hub costs: the bus with every message through the hub and every payload through
+its sockets, neither in the payload rings nor in Zenoh's shared memory (as for a worker on another
+host, whose bytes all cross the link and so are all encrypted), over plain TCP, over mutual TLS (`tls:`: every process
+presents a certificate of the graph's CA), and over mutual TLS with the hub's access control
+(`security:`, each certificate's role enforced by Zenoh), side by side in one run.
+
 Between in-process and the bus, the floor of a dataflow that moves its payloads through Zenoh: the
 same three processes doing the same work on plain Zenoh sessions (`bare_zenoh`: a publisher, a
 subscriber read on the main thread, the sink's acks straight to the source), without the runtime's
@@ -20,9 +26,11 @@ from __future__ import annotations
 import multiprocessing
 import os
 import queue
+import tempfile
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -33,6 +41,7 @@ from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.dataflow import Frame, Input, Operator, Output, Source, SourceFrame, SourceParams
 from umad_common.dataflow.allocator import keep_freed_memory
 from umad_common.dataflow.bus import open_client, open_hub
+from umad_common.dataflow.certificates import HUB, make_certificates, operator_identity
 from umad_common.dataflow.launcher import OPERATOR_NICENESS
 from umad_common.dataflow.messages import Message, decode, encode
 
@@ -110,6 +119,9 @@ def chain_in_process(frames: int, size_bytes: int) -> dict:
     }
 
 
+CHAIN = ("source", "relay", "sink")
+
+
 def over_bus(
     frames: int,
     size_bytes: int,
@@ -118,9 +130,11 @@ def over_bus(
     shm_pool_mib: int | None = None,
     shared_payloads: bool = True,
     direct_links: bool = True,
+    security: dict | None = None,
 ) -> dict:
     """source -> relay -> sink as three processes on a hub; latency is send-to-ack at the source;
-    CPU is the three processes' from their first frame on (the hub's not counted)."""
+    CPU is the three processes' from their first frame on (the hub's not counted). `security`: the
+    graph's `tls:` and `security:` blocks (`secured`)."""
     result = run_bench_graph(
         {
             "name": "bench",
@@ -128,6 +142,7 @@ def over_bus(
             "shm_pool_mib": shm_pool_mib,
             "shared_payloads": shared_payloads,
             "direct_links": direct_links,
+            **(security or {}),
             "operators": [
                 {
                     "id": "source",
@@ -140,7 +155,8 @@ def over_bus(
         }
     )
     cpu_s = sum(s.get("process_cpu_s", 0.0) for s in result["stats"].values())
-    return {**result, "cpu_ms_per_frame": 1e3 * cpu_s / frames}
+    hub_cpu_ms = 1e3 * result["hub_cpu_s"] / frames if result["hub_cpu_s"] is not None else float("nan")
+    return {**result, "cpu_ms_per_frame": 1e3 * cpu_s / frames, "hub_cpu_ms_per_frame": hub_cpu_ms}
 
 
 BARE_READY_TIMEOUT_S = 30.0
@@ -271,10 +287,77 @@ def _wait_for_subscriber(publisher) -> None:
         time.sleep(0.01)
 
 
+def secured(folder: Path, access_control: bool) -> dict:
+    """The bench graph's `tls:` block, certificates made in `folder`, and with `access_control` its
+    `security:` block giving each operator its own role."""
+    make_certificates(folder, "bench", list(CHAIN), ["localhost", "127.0.0.1"])
+    tls = {"root_ca": "ca.pem", "cert": f"{HUB}.pem", "key": f"{HUB}.key", "certs": "."}
+    blocks: dict = {"tls": {name: str(folder / path) for name, path in tls.items()}}
+    if access_control:
+        roles = {HUB: "launcher"} | {operator_identity(op): f"operator:{op}" for op in CHAIN}
+        blocks["security"] = {"roles": roles}
+    return blocks
+
+
+SECURITY_MODES = ("tcp", "mtls", "mtls_acl")
+SOCKETS_ONLY_POOL_MIB = 1  # a Zenoh shared-memory pool smaller than a frame: every payload crosses the sockets
+
+
+def bench_security(frames: int, size_bytes: int, hub: str, window: int = 8, rounds: int = 3) -> dict:
+    """The bus through the hub over plain TCP, mutual TLS, and mutual TLS with access control, in
+    `rounds` rounds, each running the three in a rotated order, so load from elsewhere falls on
+    each of them alike; per mode the median over rounds, and each round's ratios. The hub, which
+    decrypts, checks and encrypts every message, is measured too (`hub_cpu_ms_per_frame`: its CPU
+    over its life, start-up included, per frame)."""
+    tls_hub = "tls/" + hub.partition("/")[2]
+    through_sockets = {"shared_payloads": False, "direct_links": False, "shm_pool_mib": SOCKETS_ONLY_POOL_MIB}
+    runs: dict[str, list[dict]] = {mode: [] for mode in SECURITY_MODES}
+    with tempfile.TemporaryDirectory(prefix="umad-bench-certs-") as scratch:
+        settings = {
+            "tcp": (hub, None),
+            "mtls": (tls_hub, secured(Path(scratch), access_control=False)),
+            "mtls_acl": (tls_hub, secured(Path(scratch), access_control=True)),
+        }
+        for round_index in range(rounds):
+            turn = round_index % len(SECURITY_MODES)
+            for mode in SECURITY_MODES[turn:] + SECURITY_MODES[:turn]:
+                endpoint, security = settings[mode]
+                runs[mode].append(over_bus(frames, size_bytes, endpoint, window, **through_sockets, security=security))
+    keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame", "hub_cpu_ms_per_frame")
+    median = {mode: {k: float(np.median([run[k] for run in done])) for k in keep} for mode, done in runs.items()}
+
+    def per_round(mode: str, field: str) -> list[float]:
+        return [a[field] / b[field] for a, b in zip(runs[mode], runs["tcp"], strict=True)]
+
+    return {
+        "rounds": rounds,
+        **{f"through_sockets_{mode}": values for mode, values in median.items()},
+        "fps_ratio_mtls_over_tcp": median["mtls"]["fps"] / median["tcp"]["fps"],
+        "fps_ratio_mtls_acl_over_tcp": median["mtls_acl"]["fps"] / median["tcp"]["fps"],
+        "fps_ratio_mtls_acl_over_mtls": median["mtls_acl"]["fps"] / median["mtls"]["fps"],
+        "p50_ratio_mtls_acl_over_tcp": median["mtls_acl"]["p50_ms"] / median["tcp"]["p50_ms"],
+        "cpu_ratio_mtls_acl_over_tcp": median["mtls_acl"]["cpu_ms_per_frame"] / median["tcp"]["cpu_ms_per_frame"],
+        "hub_cpu_ratio_mtls_over_tcp": median["mtls"]["hub_cpu_ms_per_frame"] / median["tcp"]["hub_cpu_ms_per_frame"],
+        "hub_cpu_ratio_mtls_acl_over_tcp": median["mtls_acl"]["hub_cpu_ms_per_frame"]
+        / median["tcp"]["hub_cpu_ms_per_frame"],
+        "fps_ratio_mtls_over_tcp_per_round": per_round("mtls", "fps"),
+        "fps_ratio_mtls_acl_over_tcp_per_round": per_round("mtls_acl", "fps"),
+        "cpu_ratio_mtls_acl_over_tcp_per_round": per_round("mtls_acl", "cpu_ms_per_frame"),
+    }
+
+
 def bench_bus(
-    frames: int = 2000, size_bytes: int = 1 << 20, hub: str = "tcp/127.0.0.1:7449", shm_pool_mib: int | None = None
+    frames: int = 2000,
+    size_bytes: int = 1 << 20,
+    hub: str = "tcp/127.0.0.1:7449",
+    shm_pool_mib: int | None = None,
+    security_only: bool = False,
 ) -> dict:
-    """`shm_pool_mib`: the graph's `shm_pool_mib` (None: Zenoh's default pool)."""
+    """`shm_pool_mib`: the graph's `shm_pool_mib` (None: Zenoh's default pool). `security_only`: only
+    what securing the hub costs (`bench_security`)."""
+    security = bench_security(frames, size_bytes, hub)
+    if security_only:
+        return {"frames": frames, "frame_bytes": size_bytes, "security": security}
     local = in_process(frames, size_bytes)
     bare = bare_zenoh(frames, size_bytes, hub, window=8)
     bus = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib)
@@ -301,4 +384,5 @@ def bench_bus(
         # two 1 MiB hops (source -> relay -> sink); the small ack back to the source is charged to them
         "p50_ms_added_per_hop_window_1": (bus1["p50_ms"] - local["p50_ms"]) / 2,
         "cpu_ratio_bus_window_8_over_in_process": bus["cpu_ms_per_frame"] / local["cpu_ms_per_frame"],
+        "security": security,
     }

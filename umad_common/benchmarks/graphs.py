@@ -35,4 +35,5 @@ def run_bench_graph(graph_data: dict, timeout_note: str = "", record: Path | Non
         "wall_s_with_startup": wall,
         "start_and_stop_s": wall - busy,  # launch to the first frame sent, and the last ack to every replica gone
         "stats": launcher.stats,
+        "hub_cpu_s": launcher.hub_cpu_s,  # its whole life, start-up included
     }

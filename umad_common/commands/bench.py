@@ -36,6 +36,11 @@ def add_arguments(parser):
         "--shm-pool-mib", type=int, default=None, help="bus: the graph's `shm_pool_mib` (default: Zenoh's 16 MiB)"
     )
     parser.add_argument(
+        "--security-only",
+        action="store_true",
+        help="bus: only its runs through the hub over plain TCP, mutual TLS, and mutual TLS with access control",
+    )
+    parser.add_argument(
         "--data", type=Path, default=None, help="segmenters, control: AnoVox drives (default: generated)"
     )
     parser.add_argument("--tune", action="store_true", help="segmenters: measure a parameter grid per method")
@@ -67,7 +72,9 @@ def _run_one(name: str, args) -> dict:
     if name == "bus":
         from umad_common.benchmarks.bus import bench_bus
 
-        return bench_bus(frames=args.frames or 2000, hub=args.hub, shm_pool_mib=args.shm_pool_mib)
+        return bench_bus(
+            frames=args.frames or 2000, hub=args.hub, shm_pool_mib=args.shm_pool_mib, security_only=args.security_only
+        )
     if name == "metrics":
         from umad_common.benchmarks.metrics import bench_metrics
 

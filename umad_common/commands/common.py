@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from umad_common import DEFAULT_GRAPH
 from umad_common.dataflow.assignments import GraphError, parse_sets
+from umad_common.dataflow.certificates import CONTROL, add_certificate_arguments
 
 if TYPE_CHECKING:
     from umad_common.dataflow.graph import Graph
@@ -63,6 +64,7 @@ def add_running_graph_arguments(parser: argparse.ArgumentParser) -> None:
         "the running graph's own file does not have (default: whichever graph runs on the hub)",
     )
     add_connect_argument(parser)
+    add_certificate_arguments(parser)
 
 
 @dataclass
@@ -78,18 +80,23 @@ class RunningGraph:
         self.session.close()
 
 
-def connect_to_running_graph(graph_file: str | None, connect: str | None) -> RunningGraph | None:
-    """The graph running on the hub (`connect`, else the graph file's hub, else the default one),
-    or None after saying why not: no hub there, no graph on it, or several and none named."""
-    from umad_common.dataflow.bus import DEFAULT_HUB, Keys, ask, open_client
+def connect_to_running_graph(args: argparse.Namespace) -> RunningGraph | None:
+    """The graph running on the hub (`--connect`, else the `--graph` file's hub, else the default
+    one), or None after saying why not: no hub there, it refused our certificate (a TLS graph: the
+    `control` one of its `tls.certs`, or `--cert/--key`), no graph on it, or several and none named."""
+    from umad_common.dataflow.bus import DEFAULT_HUB, HubJoinError, Keys, ask, open_client
 
     name, hub, tls = None, DEFAULT_HUB, None
-    if graph_file:
+    if args.graph:
         from umad_common.dataflow.graph import graph_address  # reads the file; imports no operator
 
-        name, hub, tls = graph_address(graph_file)
-    hub = connect or hub
-    session = open_client(hub, tls, timeout_s=CONNECT_TIMEOUT_S, retry=False)
+        name, hub, tls = graph_address(args.graph, CONTROL, args.cert, args.key)
+    hub = args.connect or hub
+    try:
+        session = open_client(hub, tls, timeout_s=CONNECT_TIMEOUT_S, retry=False)
+    except HubJoinError as exc:
+        print(exc, file=sys.stderr)
+        return None
     if session is None:
         print(f"no hub at {hub}: is the graph running (`umad launch`)?", file=sys.stderr)
         return None
@@ -97,7 +104,13 @@ def connect_to_running_graph(graph_file: str | None, connect: str | None) -> Run
     chosen = graphs.get(name) if name else (next(iter(graphs.values())) if len(graphs) == 1 else None)
     if chosen is None:
         session.close()
-        if not graphs:
+        if not graphs and tls is not None:
+            print(
+                f"no graph answered on the hub at {hub}: none runs there, or the hub's access control refused "
+                f"this certificate ({tls.client_cert}); commands need one whose common name has the role control",
+                file=sys.stderr,
+            )
+        elif not graphs:
             print(f"no graph runs on the hub at {hub} (its launcher did not answer)", file=sys.stderr)
         elif name:
             print(f"graph {name!r} does not run on the hub at {hub}; running there: {sorted(graphs)}", file=sys.stderr)

@@ -28,7 +28,7 @@ def run(args) -> int:
     from umad_common.dataflow.bus import Keys, ask
 
     action = args._words[1]
-    running = connect_to_running_graph(args.graph, args.connect)
+    running = connect_to_running_graph(args)
     if running is None:
         return 1
     command = {action: args.id}

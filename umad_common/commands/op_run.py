@@ -6,6 +6,7 @@ import sys
 
 from umad_common.commands.common import add_connect_argument, add_graph_argument, load_graph_or_exit
 from umad_common.dataflow.assignments import GraphError
+from umad_common.dataflow.certificates import add_certificate_arguments
 
 
 def add_arguments(parser):
@@ -14,6 +15,7 @@ def add_arguments(parser):
     add_connect_argument(parser)
     parser.add_argument("--replica", type=int, default=0, help="replica index (distinct per process of one operator)")
     parser.add_argument("--set", action="append", default=[], metavar="OP.PARAM=VALUE")
+    add_certificate_arguments(parser)
 
 
 def run(args) -> int:
@@ -27,4 +29,4 @@ def run(args) -> int:
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return 1
-    run_operator(graph, args.id, args.replica, args.connect)  # ends the process
+    run_operator(graph, args.id, args.replica, args.connect, cert=args.cert, key=args.key)  # ends the process

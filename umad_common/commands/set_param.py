@@ -31,7 +31,7 @@ def run(args) -> int:
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return 1
-    running = connect_to_running_graph(args.graph, args.connect)
+    running = connect_to_running_graph(args)
     if running is None:
         return 1
     keys = Keys(running.name)

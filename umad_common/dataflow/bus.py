@@ -16,6 +16,7 @@ import json
 import logging
 import os
 import signal
+import socket
 import threading
 import time
 from dataclasses import dataclass
@@ -34,11 +35,19 @@ log = logging.getLogger("umad.bus")
 
 @dataclass(frozen=True)
 class TlsConfig:
-    """Zenoh TLS settings: the hub listens on `tls/...` endpoints; clients verify its certificate."""
+    """Zenoh mutual TLS: the hub listens on `tls/...` with `cert`; each side checks that the other's
+    certificate is signed by `root_ca`, so a client presents `client_cert` (none: the hub refuses it)."""
 
-    root_ca: str | None = None
-    cert: str | None = None
-    key: str | None = None
+    root_ca: str
+    cert: str
+    key: str
+    client_cert: str | None = None
+    client_key: str | None = None
+
+
+class HubJoinError(ConnectionError):
+    """This process cannot join a TLS hub: a certificate file of its own is missing, or the hub's port
+    answers but the handshake fails (a certificate one side does not accept)."""
 
 
 def zenoh_config(
@@ -49,11 +58,13 @@ def zenoh_config(
     shared_memory: bool = True,
     retry: bool = True,
     shm_pool_mib: int | None = None,
+    access_control: dict | None = None,
 ) -> zenoh.Config:
     """The one place every Zenoh config is built. `retry=False`: a client that finds no hub fails
     at once instead of waiting for one (a command to a graph that is not running). `shm_pool_mib`:
     the session's shared-memory pool for large messages (Zenoh's default: 16 MiB); a message that
-    finds no room in it goes through the hub's socket."""
+    finds no room in it goes through the hub's socket. `access_control`: the hub's Zenoh ACL
+    (`umad_common.dataflow.access`)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -68,18 +79,56 @@ def zenoh_config(
         if retry:  # clients keep retrying the hub, so a restarted hub is rejoined
             conf.insert_json5("connect/timeout_ms", "-1")
     if tls is not None:
-        if tls.root_ca:
-            conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(tls.root_ca))
-        if tls.cert:
+        conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(tls.root_ca))
+        conf.insert_json5("transport/link/tls/enable_mtls", "true")
+        if mode == "router":
             conf.insert_json5("transport/link/tls/listen_certificate", json.dumps(tls.cert))
-        if tls.key:
             conf.insert_json5("transport/link/tls/listen_private_key", json.dumps(tls.key))
+        elif tls.client_cert and tls.client_key:
+            conf.insert_json5("transport/link/tls/connect_certificate", json.dumps(tls.client_cert))
+            conf.insert_json5("transport/link/tls/connect_private_key", json.dumps(tls.client_key))
+    if access_control is not None:
+        conf.insert_json5("access_control", json.dumps(access_control))
     return conf
 
 
-def open_hub(endpoint: str = DEFAULT_HUB, tls: TlsConfig | None = None) -> zenoh.Session:
-    """A router-mode session listening on `endpoint`."""
-    return zenoh.open(zenoh_config("router", listen=[endpoint], tls=tls))
+def open_hub(
+    endpoint: str = DEFAULT_HUB, tls: TlsConfig | None = None, access_control: dict | None = None
+) -> zenoh.Session:
+    """A router-mode session listening on `endpoint`, enforcing `access_control` where given."""
+    return zenoh.open(zenoh_config("router", listen=[endpoint], tls=tls, access_control=access_control))
+
+
+def _port_answers(endpoint: str) -> bool:
+    """Whether something accepts TCP connections at `proto/HOST:PORT`."""
+    host, _, port = endpoint.partition("/")[2].rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=2.0):
+            return True
+    except (OSError, ValueError):
+        return False
+
+
+def check_tls_handshake(endpoint: str, tls: TlsConfig) -> None:
+    """Raise HubJoinError where a certificate file of ours is missing, or the hub at `endpoint`
+    listens but the TLS handshake fails; return where it succeeds or nothing listens yet (the caller
+    waits for the hub then). Zenoh's own error does not say why, and a client that keeps retrying a
+    hub that refuses it would wait for ever."""
+    for what, path in (("CA certificate", tls.root_ca), ("certificate", tls.client_cert), ("key", tls.client_key)):
+        if path and not Path(path).is_file():
+            raise HubJoinError(f"this process's {what} {path} for the hub at {endpoint} is not a file")
+    try:
+        probe = zenoh.open(zenoh_config("client", connect=[endpoint], tls=tls, shared_memory=False, retry=False))
+    except zenoh.ZError:
+        if _port_answers(endpoint):
+            own = tls.client_cert or "no certificate (give --cert/--key, or tls.certs in the graph)"
+            raise HubJoinError(
+                f"the hub at {endpoint} refused the TLS handshake: it accepts only certificates signed by "
+                f"the graph's CA, and this process presented {own} (or the hub's certificate is not signed "
+                f"by {tls.root_ca})"
+            ) from None
+        return
+    close_session(probe)
 
 
 def open_client(
@@ -104,7 +153,10 @@ def open_client(
     it gives up after `timeout_s`: returns None then. `shared_memory=False` for a session that
     outlives the processes it sweeps up after (the launcher): a segment it maps could never go.
     `retry=False`: no hub listening returns None at once. `shm_pool_mib` as in `zenoh_config`.
+    Raises HubJoinError where this process cannot join a TLS hub (`check_tls_handshake`).
     """
+    if tls is not None:
+        check_tls_handshake(endpoint, tls)
     conf = zenoh_config(
         "peer" if direct_links else "client",
         listen=[DIRECT_LINK_LISTEN] if direct_links else None,
@@ -238,6 +290,10 @@ class Keys:
     @property
     def live_all(self) -> str:
         return f"{self.root}/_live/**"
+
+    def payload(self, op: str) -> str:
+        """Under which prefix `op`'s replicas answer for payloads of their rings (`payload_ring.fetch_key`)."""
+        return f"{self.root}/_payload/{op}"
 
     def stats(self, op: str, replica: str) -> str:
         return f"{self.root}/_stats/{op}/{replica}"

@@ -27,15 +27,37 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from umad_common.dataflow.assignments import GraphError, merge_params
 from umad_common.dataflow.bus import DEFAULT_HUB, TlsConfig
+from umad_common.dataflow.certificates import operator_identity
 from umad_common.dataflow.operator import Operator, Source, UnknownOperatorError, load_operator_class
 from umad_common.dataflow.pacing import SourceParams
 
 
 class TlsSpec(BaseModel):
+    """Mutual TLS: the hub and every process of the graph present a certificate signed by `root_ca`."""
+
     model_config = ConfigDict(extra="forbid")
-    root_ca: str | None = Field(None, description="CA certificate (PEM) that signed the hub's certificate")
-    cert: str | None = Field(None, description="hub certificate (PEM), used when listening on tls/...")
-    key: str | None = Field(None, description="hub private key (PEM)")
+    root_ca: str = Field(description="the graph's CA certificate (PEM): it signed every certificate of the graph")
+    cert: str = Field(description="hub certificate (PEM); the launcher and its recorder present it too")
+    key: str = Field(description="hub private key (PEM)")
+    certs: str | None = Field(
+        None,
+        description="folder of the other processes' certificates as `umad certs` writes them (op-<id>.pem/.key, "
+        "control.pem/.key, observer.pem/.key); a process given --cert/--key uses those instead",
+    )
+
+
+ROLES = ("launcher", "control", "observer")  # and `operator:<id>`
+
+
+class SecuritySpec(BaseModel):
+    """Roles by certificate common name, which the hub enforces with Zenoh's access control."""
+
+    model_config = ConfigDict(extra="forbid")
+    roles: dict[str, str] = Field(
+        description="certificate common name -> role: `launcher` (the hub certificate: the launcher and its "
+        "recorder), `operator:<id>` (publishes that operator's outputs, reads its inputs), `control` "
+        "(`umad set`, `umad op start|stop`), `observer` (reads every channel, publishes nothing)"
+    )
 
 
 class OperatorSpec(BaseModel):
@@ -79,6 +101,7 @@ class GraphSpec(BaseModel):
         "through the hub",
     )
     tls: TlsSpec | None = None
+    security: SecuritySpec | None = None
     base_dir: str | None = Field(
         None, description="folder that relative paths in params resolve against (default: the graph file's)"
     )
@@ -102,13 +125,28 @@ class Graph:
         here = self.path.parent if self.path else Path.cwd()
         return here / self.spec.base_dir if self.spec.base_dir else here
 
-    def tls_config(self) -> TlsConfig | None:
-        """The graph's TLS settings with certificate paths resolved against `base_dir`."""
+    def tls_config(
+        self, identity: str | None = None, cert: str | None = None, key: str | None = None
+    ) -> TlsConfig | None:
+        """The graph's TLS settings for one process, paths resolved against `base_dir`.
+
+        The process presents `cert`/`key` where given (a host holding only its own certificate), else
+        the certificate named `identity` (`umad_common.dataflow.certificates`) in the graph's
+        `tls.certs` folder; `identity` None: the hub's, which the launcher presents too."""
         tls = self.spec.tls
         if tls is None:
             return None
-        resolve = lambda p: str(self.base_dir / p) if p else None  # noqa: E731
-        return TlsConfig(resolve(tls.root_ca), resolve(tls.cert), resolve(tls.key))
+        hub_cert, hub_key = str(self.base_dir / tls.cert), str(self.base_dir / tls.key)
+        if cert or key:
+            client_cert, client_key = cert, key
+        elif identity is None:
+            client_cert, client_key = hub_cert, hub_key
+        elif tls.certs:
+            folder = self.base_dir / tls.certs
+            client_cert, client_key = str(folder / f"{identity}.pem"), str(folder / f"{identity}.key")
+        else:
+            client_cert, client_key = None, None
+        return TlsConfig(str(self.base_dir / tls.root_ca), hub_cert, hub_key, client_cert, client_key)
 
     def op(self, op_id: str) -> OperatorSpec:
         for spec in self.spec.operators:
@@ -165,12 +203,15 @@ def load_graph(path: str | Path) -> Graph:
     return validate_graph(_read_yaml(path), path)
 
 
-def graph_address(path: str | Path) -> tuple[str, str, TlsConfig | None]:
-    """A graph file's name, hub and TLS settings, read without importing its operators: what a
-    command needs to reach the graph when it runs."""
+def graph_address(
+    path: str | Path, identity: str, cert: str | None = None, key: str | None = None
+) -> tuple[str, str, TlsConfig | None]:
+    """A graph file's name, hub and TLS settings for a process presenting the certificate `identity`
+    (or `cert`/`key`), read without importing its operators: what a command needs to reach the graph
+    when it runs."""
     path = Path(path)
     spec = _graph_spec(_read_yaml(path), f"{path}: ")
-    return spec.name, spec.hub, Graph(spec, {}, path).tls_config()
+    return spec.name, spec.hub, Graph(spec, {}, path).tls_config(identity, cert, key)
 
 
 def _graph_spec(data: Any, where: str) -> GraphSpec:
@@ -258,6 +299,7 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
                     problems.append(
                         f"operator {op.id!r}: input {name!r} = {source!r} matches {len(matches)} outputs but the port takes one"
                     )
+    problems += _security_problems(spec)
     if not problems:
         cycle = _find_cycle(graph)
         if cycle:
@@ -265,6 +307,34 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
     if problems:
         raise GraphError([where + p for p in problems])
     return graph
+
+
+def _security_problems(spec: GraphSpec) -> list[str]:
+    if spec.security is None:
+        return []
+    if spec.tls is None:
+        return [
+            "security: roles are given by certificate, so the graph needs a tls: block (root_ca, cert, key, "
+            "certs) and a tls/HOST:PORT hub; `umad certs GRAPH --out DIR` makes the certificates"
+        ]
+    problems = []
+    if not spec.hub.startswith("tls/"):
+        problems.append(f"security: the hub {spec.hub!r} is not a tls/HOST:PORT endpoint, so no certificate is checked")
+    ids = {op.id for op in spec.operators}
+    for name, role in spec.security.roles.items():
+        op_id = role.partition(":")[2] if role.startswith("operator:") else None
+        if op_id is None and role not in ROLES:
+            problems.append(
+                f"security.roles.{name}: unknown role {role!r}; expected one of {', '.join(ROLES)} or operator:<id>"
+            )
+        elif op_id is not None and op_id not in ids:
+            problems.append(f"security.roles.{name}: {role!r} names no operator of the graph; it has {sorted(ids)}")
+    if "launcher" not in spec.security.roles.values():
+        problems.append(
+            "security.roles: no common name has the role launcher; give the hub certificate's common name "
+            "(the launcher and its recorder present it)"
+        )
+    return problems
 
 
 def missing_local_files(graph: Graph) -> list[str]:
@@ -284,6 +354,11 @@ def missing_local_files(graph: Graph) -> list[str]:
         path = getattr(tls, name) if tls else None
         if path and not Path(path).is_file():
             problems.append(f"tls.{name}: {path} not found; expected a PEM file")
+    if graph.spec.tls is not None and graph.spec.tls.certs:
+        for op in graph.spec.operators:
+            own = graph.tls_config(operator_identity(op.id))
+            if not Path(own.client_cert).is_file():
+                problems.append(f"operator {op.id!r}: certificate {own.client_cert} not found (tls.certs)")
     return problems
 
 

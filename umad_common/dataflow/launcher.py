@@ -31,7 +31,8 @@ from pathlib import Path
 
 import zenoh
 
-from umad_common.dataflow.bus import Keys, answer, cleanup_stale_shm, close_session, open_client
+from umad_common.dataflow.access import access_control
+from umad_common.dataflow.bus import HubJoinError, Keys, answer, cleanup_stale_shm, close_session, open_client
 from umad_common.dataflow.exit_codes import EXIT_CONFIG, EXIT_INCOMPLETE, EXIT_STOPPED
 from umad_common.dataflow.graph import Graph, GraphError, OperatorSpec, load_graph
 from umad_common.dataflow.mcap_log import describe_loss
@@ -96,6 +97,15 @@ class ProgressLine:
         return f"{done}/{total} frames ({100 * done / max(total, 1):.0f} %), {rate:.2f} frames/s{left}"
 
 
+def process_cpu_s(pid: int) -> float | None:
+    """CPU seconds (user + system) process `pid` has used so far; None where /proc cannot say."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime: fields 14, 15
+
+
 class Launcher:
     def __init__(
         self,
@@ -112,6 +122,7 @@ class Launcher:
     ):
         self.quiet = quiet
         self.hub_replica: Replica | None = None
+        self.hub_cpu_s: float | None = None  # the hub process's CPU over its life, read as it is stopped
         self.tails: dict[str, deque[str]] = defaultdict(lambda: deque(maxlen=30))
         self.graph = graph
         self.graph_file = Path(graph_file)
@@ -145,9 +156,9 @@ class Launcher:
         cmd = [sys.executable, "-m", "umad_common.dataflow.hub", "--listen", self.hub]
         tls = self.graph.tls_config()
         if tls is not None:
-            for flag, value in (("--root-ca", tls.root_ca), ("--cert", tls.cert), ("--key", tls.key)):
-                if value:
-                    cmd += [flag, value]
+            cmd += ["--root-ca", tls.root_ca, "--cert", tls.cert, "--key", tls.key]
+        if self.graph.spec.security is not None:
+            cmd += ["--access-control", json.dumps(access_control(self.graph))]
         return cmd
 
     def _command(self, graph: Graph, graph_file: Path, spec: OperatorSpec, index: int) -> list[str]:
@@ -266,6 +277,7 @@ class Launcher:
 
     def _stop_hub(self, grace_s: float) -> None:
         if self.hub_replica is not None and self.hub_replica.proc is not None:
+            self.hub_cpu_s = process_cpu_s(self.hub_replica.proc.pid)
             self.hub_replica.proc.send_signal(signal.SIGTERM)
             try:
                 self.hub_replica.proc.wait(timeout=0 if self._hurry.is_set() else grace_s)
@@ -318,9 +330,14 @@ class Launcher:
             self._stop.set()
 
         tls = self.graph.tls_config()
-        taken = open_client(self.hub, tls, retry=False, timeout_s=HUB_CONNECT_TIMEOUT_S, shared_memory=False)
-        if taken is not None:  # our hub could not listen there, and our replicas would join that one
-            close_session(taken)
+        try:
+            taken = open_client(self.hub, tls, retry=False, timeout_s=HUB_CONNECT_TIMEOUT_S, shared_memory=False)
+            listening = taken is not None
+        except HubJoinError:  # a TLS hub that does not take our certificate
+            taken, listening = None, True
+        if listening:  # our hub could not listen there, and our replicas would join that one
+            if taken is not None:
+                close_session(taken)
             log.error(
                 "a hub already listens at %s (another graph, or one that did not stop): stop it, or give "
                 "this graph another `hub:` endpoint",
@@ -330,11 +347,18 @@ class Launcher:
         previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
         self.hub_replica = Replica("hub", 0, self._hub_command(), False)
         self._spawn(self.hub_replica, niceness=0)
-        hub = open_client(self.hub, tls, cancel=self._stop, timeout_s=HUB_CONNECT_TIMEOUT_S, shared_memory=False)
+        refused = None
+        try:
+            hub = open_client(self.hub, tls, cancel=self._stop, timeout_s=HUB_CONNECT_TIMEOUT_S, shared_memory=False)
+        except HubJoinError as exc:  # the hub's certificate and ours are not of one CA
+            hub, refused = None, exc
         if hub is None:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
             self._stop_hub(grace_s=1.0)
+            if refused is not None:
+                log.error("%s", refused)
+                return EXIT_CONFIG
             if self._stop.is_set():
                 return EXIT_STOPPED
             log.error("no hub answered at %s within %.0fs", self.hub, HUB_CONNECT_TIMEOUT_S)

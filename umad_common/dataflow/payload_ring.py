@@ -89,21 +89,22 @@ def _parse(reference: bytes) -> tuple[str, int, int]:
     return name, start, length
 
 
-def fetch_key(root: str, reference: bytes) -> str:
-    """Where the publisher of `reference` answers for its payloads: `<graph root>/_payload/<pid>-<id>`."""
+def fetch_key(prefix: str, reference: bytes) -> str:
+    """Where the publisher of `reference` answers for its payloads: `<prefix>/<pid>-<id>`, the prefix
+    being its operator's (`Keys.payload`), so access control can let only that operator answer."""
     match = _RING_NAME.match(_parse(reference)[0])
     assert match is not None
-    return f"{root}/_payload/{match[1]}-{match[2]}"
+    return f"{prefix}/{match[1]}-{match[2]}"
 
 
 class PayloadRing:
     """A publisher's side: `pack(payload)` writes a large payload into the ring and returns its
     reference (a small payload comes back unchanged). Not thread-safe: one publishing thread."""
 
-    def __init__(self, root: str, directory: Path = RING_DIR):
+    def __init__(self, prefix: str, directory: Path = RING_DIR):
         self.directory = directory
         self.ident = f"{os.getpid()}-{secrets.token_hex(4)}"
-        self.fetch_key = f"{root}/_payload/{self.ident}"
+        self.fetch_key = f"{prefix}/{self.ident}"
         self.generation = 0
         self.capacity = 0
         self.name = ""
@@ -256,10 +257,11 @@ class PayloadReader:
             self._maps.clear()
 
 
-def fetch(session: zenoh.Session, root: str, reference: bytes) -> bytes | None:
-    """Ask the publisher of `reference` for its payload; None if it no longer has it (or is gone)."""
+def fetch(session: zenoh.Session, prefix: str, reference: bytes) -> bytes | None:
+    """Ask the publisher of `reference` for its payload under `prefix` (its operator's
+    `Keys.payload`); None if it no longer has it (or is gone)."""
     try:
-        key = fetch_key(root, reference)
+        key = fetch_key(prefix, reference)
     except ValueError:
         return None
     try:

@@ -129,7 +129,8 @@ class Recording:
             if item is None:
                 return
             key, reference = item
-            payload = None if self._closing.is_set() else fetch(self._session, self.keys.root, reference)
+            producer = self.keys.payload(self.keys.parse_data(key)[0])
+            payload = None if self._closing.is_set() else fetch(self._session, producer, reference)
             if payload is None:
                 self._lose(key)
             else:

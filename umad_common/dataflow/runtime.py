@@ -52,7 +52,15 @@ from threadpoolctl import threadpool_limits
 
 from umad_common.dataflow.allocator import keep_freed_memory
 from umad_common.dataflow.assignments import GraphError, merge_params, parse_sets
-from umad_common.dataflow.bus import Keys, ShutdownSignal, answer, close_session, open_client
+from umad_common.dataflow.bus import (
+    HubJoinError,
+    Keys,
+    ShutdownSignal,
+    answer,
+    close_session,
+    open_client,
+)
+from umad_common.dataflow.certificates import add_certificate_arguments, operator_identity
 from umad_common.dataflow.delivery import FrameJoiner, Membership, OutputCache, Stats
 from umad_common.dataflow.exit_codes import EXIT_CONFIG
 from umad_common.dataflow.graph import Graph, load_graph
@@ -154,7 +162,7 @@ class OperatorRuntime:
         self.members = Membership()
         self.resend_requests: list[dict] = []  # sources: frames a restarted ordered operator needs again
         self._rewinds: dict[str, float] = {}  # ordered operators: run -> when frames were last re-requested
-        self.ring = PayloadRing(self.keys.root) if graph.spec.shared_payloads and shared_payloads else None
+        self.ring = PayloadRing(self.keys.payload(op_id)) if graph.spec.shared_payloads and shared_payloads else None
         self.reader = PayloadReader()
         self.publishers = {
             out: session.declare_publisher(self.keys.data(op_id, out), congestion_control=zenoh.CongestionControl.BLOCK)
@@ -392,7 +400,7 @@ class OperatorRuntime:
         frame is passed over at its deadline (`_finish_live`)."""
         if not isinstance(received.message, bytes):
             return received.message
-        payload = fetch(self.session, self.keys.root, received.message)
+        payload = fetch(self.session, self.keys.payload(self.keys.parse_data(received.key)[0]), received.message)
         if payload is None:
             self.stats.lost_payloads += 1
             self.log.warning(
@@ -736,9 +744,12 @@ def run_operator(
     max_frames: int | None = None,
     replay_log: str | None = None,
     allow_truncated: bool = False,
+    cert: str | None = None,
+    key: str | None = None,
 ) -> NoReturn:
     """Connect to the hub, run one replica until the stream ends (sources) or a signal arrives, and
-    end the process.
+    end the process. With TLS it presents `cert`/`key`, else its operator's certificate `op-<id>` of
+    the graph's `tls.certs`; a hub that refuses it ends the process with one line saying so.
 
     The process ends with `os._exit` once its operator and session are closed and its output is
     flushed. The interpreter's own finalization is skipped: it garbage-collects every object torch,
@@ -750,16 +761,20 @@ def run_operator(
     one_blas_thread()
     keep_freed_memory()
     shutdown = ShutdownSignal()
-    tls = graph.tls_config()
+    tls = graph.tls_config(operator_identity(op_id), cert, key)
     hub = connect or graph.spec.hub
     local = on_this_host(hub)
-    session = open_client(
-        hub,
-        tls,
-        cancel=shutdown.event,
-        shm_pool_mib=graph.spec.shm_pool_mib,
-        direct_links=local and graph.spec.direct_links and tls is None,
-    )
+    try:
+        session = open_client(
+            hub,
+            tls,
+            cancel=shutdown.event,
+            shm_pool_mib=graph.spec.shm_pool_mib,
+            direct_links=local and graph.spec.direct_links and tls is None,
+        )
+    except HubJoinError as exc:
+        log.error("operator %s could not join: %s", op_id, exc)
+        _exit(EXIT_CONFIG)
     if session is None:
         log.info("stopped while waiting for the hub at %s", hub)
         _exit(0)
@@ -812,6 +827,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="OP.PARAM=VALUE")
     parser.add_argument("--replay-log", default=None, help="sources publish this MCAP log's recorded frames")
     parser.add_argument("--allow-truncated", action="store_true")
+    add_certificate_arguments(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     try:
@@ -822,7 +838,17 @@ def main(argv: list[str] | None = None) -> int:
     except GraphError as exc:
         print(exc, file=sys.stderr)
         return EXIT_CONFIG
-    run_operator(graph, args.op, args.replica, args.connect, args.max_frames, args.replay_log, args.allow_truncated)
+    run_operator(
+        graph,
+        args.op,
+        args.replica,
+        args.connect,
+        args.max_frames,
+        args.replay_log,
+        args.allow_truncated,
+        args.cert,
+        args.key,
+    )
 
 
 if __name__ == "__main__":
