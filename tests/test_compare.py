@@ -8,11 +8,11 @@ import json
 
 import pytest
 
-from replay.sweep import sweep_log
 from tests.test_sweep import synthetic_frames, write_log
 from umad_common.cli import main as umad_main
 from umad_common.viz.compare import frames_difference, load_results
 from umad_common.viz.report import write_report
+from umad_replay.sweep import sweep_log
 
 
 def evaluation(tmp_path_factory, name: str, seed: int, n: int = 6):

@@ -354,7 +354,7 @@ def frame_message(arrays) -> Frame:
 
 @pytest.mark.parametrize("metric", ["abs", "mse", "ssim", "perceptual", "temporal"])
 def test_operator_outputs_normalised_map(metric, feature_file, tmp_path):
-    from operators.difference import Difference
+    from umad_operators.difference import Difference
 
     calibration = tmp_path / "calibration.json"
     fitter = CalibrationFitter()
@@ -386,7 +386,7 @@ def test_operator_outputs_normalised_map(metric, feature_file, tmp_path):
 def test_operator_fails_early_and_loads_user_metric(tmp_path, monkeypatch):
     from pydantic import ValidationError
 
-    from operators.difference import Difference
+    from umad_operators.difference import Difference
 
     with pytest.raises(ValidationError):
         Difference({"metric": "abs", "colour": "red"})

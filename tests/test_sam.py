@@ -24,7 +24,7 @@ END_TO_END = textwrap.dedent(
     import numpy as np
     import torch
     from segment_anything import sam_model_registry
-    from operators.segmenter import Segmenter
+    from umad_operators.segmenter import Segmenter
     from umad_common.dataflow.messages import Message
     from umad_common.dataflow import Frame
 

@@ -81,9 +81,9 @@ def calibration_drives(data: Path, record: dict) -> tuple[list[Path], str]:
 def sensor_frames(scenario, limit: int) -> Iterator:
     """The first `limit` frames of a label-free scenario (`label_free_scenario`: its reader cannot
     open a label file) as the replayer sends them to the world model: camera, lidar, ego, route."""
-    from operators.replayer import frame_outputs
-    from operators.world_model import WorldModelPredictor
     from umad_common.dataflow.operator import frame_of
+    from umad_operators.replayer import frame_outputs
+    from umad_operators.world_model import WorldModelPredictor
 
     ports = [port.name for port in WorldModelPredictor.inputs]
     for seq in range(min(len(scenario), limit)):
@@ -94,10 +94,10 @@ def run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
-    from operators.world_model import WorldModelPredictor
     from umad_common.datasets.anovox import label_free_scenario
     from umad_common.differences import METRICS, CalibrationFitter, MetricOptions, build_metric
     from umad_common.models.weights import weight_paths
+    from umad_operators.world_model import WorldModelPredictor
 
     if args.frames < 1:
         raise SystemExit(f"--frames is {args.frames}; expected at least 1")

@@ -96,11 +96,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from replay.sweep import sweep_log
     from umad_common.commands.common import load_graph_or_exit
     from umad_common.dataflow.exit_codes import EXIT_INCOMPLETE, EXIT_STOPPED
     from umad_common.dataflow.launcher import Launcher
     from umad_common.viz.report import write_report
+    from umad_replay.sweep import sweep_log
 
     started = time.perf_counter()
     args.every, layout = every_and_layout(args.protocol, args.every)

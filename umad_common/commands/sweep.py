@@ -47,8 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from replay.sweep import sweep_log
     from umad_common.viz.report import write_report
+    from umad_replay.sweep import sweep_log
 
     if args.every < 1 or args.lag < 0 or args.overlays < 0:
         raise SystemExit("--every must be >= 1, --lag and --overlays >= 0")

@@ -233,15 +233,15 @@ class Source(Operator):
 
 
 BUILTIN_KINDS = {
-    "replayer": "operators.replayer:Replayer",
-    "world_model": "operators.world_model:WorldModelPredictor",
-    "difference": "operators.difference:Difference",
-    "fusion": "operators.fusion:Fusion",
-    "segmenter": "operators.segmenter:Segmenter",
-    "mask_refiner": "operators.mask_refiner:MaskRefiner",
-    "frame_result": "operators.frame_result:FrameResult",
-    "mnad": "operators.mnad:MnadPredictor",
-    "accumulator": "operators.accumulator:Accumulator",
+    "replayer": "umad_operators.replayer:Replayer",
+    "world_model": "umad_operators.world_model:WorldModelPredictor",
+    "difference": "umad_operators.difference:Difference",
+    "fusion": "umad_operators.fusion:Fusion",
+    "segmenter": "umad_operators.segmenter:Segmenter",
+    "mask_refiner": "umad_operators.mask_refiner:MaskRefiner",
+    "frame_result": "umad_operators.frame_result:FrameResult",
+    "mnad": "umad_operators.mnad:MnadPredictor",
+    "accumulator": "umad_operators.accumulator:Accumulator",
 }
 
 
