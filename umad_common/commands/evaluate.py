@@ -22,7 +22,7 @@ from pathlib import Path
 
 import yaml
 
-from umad_common import ASSETS
+from umad_common import ASSETS, SAM_ENV_SCRIPT
 from umad_common.commands.common import DEFAULT_GRAPH
 
 log = logging.getLogger("umad.eval")
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     if args.sam_checkpoint and not Path(args.sam_python).is_file():
         print(
             f"--sam-python {args.sam_python}: no such interpreter; build the SAM environment with "
-            "`bash .ci/sam_env.sh .venv-sam`",
+            f"`bash {SAM_ENV_SCRIPT} .venv-sam`",
             file=sys.stderr,
         )
         return 1
@@ -180,9 +180,11 @@ def _builtin_benchmark(folder: Path, scenarios: int, frames: int) -> Path:
 
 def _eval_graph(args: argparse.Namespace, source: Path) -> dict:
     """The graph file with this evaluation's data, models and optional SAM branch filled in."""
+    from umad_common.dataflow.graph import graph_base_dir
+
     graph_path = args.graph.resolve()
     data = yaml.safe_load(graph_path.read_text())
-    data["base_dir"] = str(graph_path.parent / data.get("base_dir", "."))
+    data["base_dir"] = str(graph_base_dir(graph_path, data.get("base_dir")))
     by_kind: dict[str, list[dict]] = {}
     for op in data["operators"]:
         by_kind.setdefault(op.get("kind", ""), []).append(op)

@@ -25,6 +25,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from umad_common import DEFAULT_GRAPH, LIVE_GRAPH
 from umad_common.dataflow.assignments import GraphError, merge_params
 from umad_common.dataflow.bus import DEFAULT_HUB, TlsConfig
 from umad_common.dataflow.operator import Operator, Source, UnknownOperatorError, load_operator_class
@@ -99,8 +100,7 @@ class Graph:
 
     @property
     def base_dir(self) -> Path:
-        here = self.path.parent if self.path else Path.cwd()
-        return here / self.spec.base_dir if self.spec.base_dir else here
+        return graph_base_dir(self.path, self.spec.base_dir)
 
     def tls_config(self) -> TlsConfig | None:
         """The graph's TLS settings with certificate paths resolved against `base_dir`."""
@@ -154,6 +154,26 @@ class Graph:
                 raise GraphError([f"--set names operator {op_id!r}, which is not in the graph"])
             merge_params(matches[0]["params"], params)
         return validate_graph(data, self.path)
+
+
+def graph_base_dir(path: Path | None, base_dir: str | None) -> Path:
+    """The folder a graph's relative paths resolve against: its `base_dir` (relative to the graph
+    file's folder); else the working folder for a graph shipped with the package (the default and
+    the live graph: `data/...` means the user's data, wherever the package is installed); else the
+    graph file's folder. Shipped files (`umad_common/assets/...`) resolve from any of them."""
+    here = path.parent if path else Path.cwd()
+    if base_dir:
+        return here / base_dir
+    if path is not None and is_builtin_graph(path):
+        return Path.cwd()
+    return here
+
+
+def is_builtin_graph(path: str | Path) -> bool:
+    """Whether `path` is one of the graphs the package ships (in a checkout, also the top-level
+    graph.yaml, which the package's default graph links to)."""
+    real = Path(path).resolve()
+    return any(real == graph.resolve() for graph in (DEFAULT_GRAPH, LIVE_GRAPH))
 
 
 def load_graph(path: str | Path) -> Graph:

@@ -28,7 +28,7 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from umad_common import REPOSITORY
+from umad_common import resolve_path
 from umad_common.dataflow.messages import Message
 from umad_common.dataflow.pacing import SourceParams
 from umad_common.dataflow.plugins import import_class
@@ -118,15 +118,10 @@ class Context:
     log: logging.Logger = field(default_factory=lambda: logging.getLogger("umad.op"))
 
     def resolve(self, path: str | Path) -> Path:
-        """A path from the parameters: absolute, or relative to the graph file's folder; failing
-        that, relative to the installed package root, so the shipped `umad_common/assets/...`
-        defaults work for a graph kept in any folder."""
-        p = Path(path).expanduser()
-        if p.is_absolute():
-            return p
-        local = self.base_dir / p
-        shipped = REPOSITORY / p
-        return shipped if not local.exists() and shipped.exists() else local
+        """A path from the parameters: absolute, or relative to the graph's `base_dir`; failing
+        that, the shipped file it names, so the `umad_common/assets/...` defaults work for a graph
+        kept in any folder (`umad_common.resolve_path`)."""
+        return resolve_path(path, self.base_dir)
 
 
 class Operator:
