@@ -1,6 +1,6 @@
 """Imports point one way: operators/ and replay/ (installed as umad_operators and umad_replay) build on
-umad_common; umad_common (outside the CLI in commands/) imports neither, and the benchmarks the CLI
-runs do not import the CLI."""
+umad_common; umad_common (outside the CLI: cli.py and commands/) imports neither, and the benchmarks
+the CLI runs do not import the CLI."""
 
 from __future__ import annotations
 
@@ -54,7 +54,7 @@ def offending(folder: str, forbidden: tuple[str, ...], skip: tuple[str, ...] = (
         (
             "umad_common",
             ("umad_replay", "umad_operators", "umad_common.commands"),
-            ("umad_common/commands/", "umad_common/benchmarks/"),
+            ("umad_common/cli.py", "umad_common/commands/", "umad_common/benchmarks/"),
         ),
         ("umad_common/benchmarks", ("umad_replay", "umad_common.commands"), ()),
         ("operators", ("umad_replay", "umad_common.commands"), ()),

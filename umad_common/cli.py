@@ -12,8 +12,9 @@ import logging
 import os
 import sys
 
+from umad_common.commands.checks import InputError
 from umad_common.dataflow.allocator import keep_freed_memory
-from umad_common.dataflow.exit_codes import EXIT_STOPPED
+from umad_common.dataflow.exit_codes import EXIT_BAD_INPUT, EXIT_STOPPED
 
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("launch",): ("umad_common.commands.launch", "start the graph: hub plus one process per operator replica"),
@@ -66,6 +67,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         code = int(importlib.import_module(args._module).run(args) or 0)
+    except InputError as exc:  # checked before anything started: one line per problem, nothing written
+        for line in str(exc).splitlines():
+            print(f"umad {' '.join(args._words)}: {line}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     except (OSError, ValueError, LookupError) as exc:
         # Bad input (a missing or malformed file, a wrong shape, an unknown name): every such error
         # names what was wrong and what was expected, so the message is the answer. -v: traceback.

@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from umad_common import ASSETS, recorded_path
+from umad_common.commands.checks import model_file, normal_drives, writable_output
 
 log = logging.getLogger("umad.calibrate")
 
@@ -91,6 +92,11 @@ def sensor_frames(scenario, limit: int) -> Iterator:
 
 
 def run(args: argparse.Namespace) -> int:
+    normal_drives(args.data, "DATA")
+    model_file(args.world_model, "--world-model", "world model")
+    if args.features is not None:
+        model_file(args.features, "--features", "perceptual feature net")
+    writable_output(args.out, "--out", folder=False)
     import torch
     from tqdm import tqdm
 

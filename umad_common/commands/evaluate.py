@@ -23,6 +23,17 @@ from pathlib import Path
 import yaml
 
 from umad_common import ASSETS, SAM_ENV_SCRIPT
+from umad_common.commands.checks import (
+    InputError,
+    checked_graph,
+    evaluation_drives,
+    existing_file,
+    free_hub_port,
+    lidar_notice,
+    model_file,
+    print_notice,
+    writable_output,
+)
 from umad_common.commands.common import DEFAULT_GRAPH
 
 log = logging.getLogger("umad.eval")
@@ -95,39 +106,60 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def check_inputs(args: argparse.Namespace) -> Path | None:
+    """Everything `umad eval` was given, checked before anything starts or is written (`args.every`
+    already the protocol's when not given). Returns the folder it scores: `--data`'s drives, or None
+    for the built-in benchmark, generated later."""
+    if args.every < 1:
+        raise InputError.of(f"--every {args.every}", "is below 1", "k >= 1: every k-th frame scored")
+    for value, flag in ((args.scenarios, "--scenarios"), (args.frames, "--frames")):
+        if value < 1:
+            raise InputError.of(f"{flag} {value}", "is below 1", "at least 1")
+    writable_output(args.out, "--out")
+    model_file(args.world_model, "--world-model", "world model")
+    if args.vgg_weights:
+        existing_file(args.vgg_weights, "--vgg-weights", "a torchvision VGG16 state dict")
+    else:
+        model_file(args.features, "--features", "perceptual feature net")
+    model_file(args.mnad, "--mnad", "MNAD baseline")
+    if args.sam_checkpoint:
+        existing_file(args.sam_checkpoint, "--sam-checkpoint", "a segment-anything checkpoint")
+        existing_file(
+            Path(args.sam_python),
+            "--sam-python",
+            f"the python of the SAM environment (build it with `bash {SAM_ENV_SCRIPT} .venv-sam`)",
+        )
+    source, scenarios = evaluation_drives(args.data, "--data") if args.data else (None, [])
+    graph = checked_graph(args.graph, local=True)
+    free_hub_port(args.hub or graph.spec.hub, "--hub" if args.hub else f"{args.graph}: hub")
+    if source is None:  # the benchmark's folder does not exist yet: the graph without its data
+        checked_graph(args.out / "graph.yaml", args.set, local=True, data=_eval_graph(args, args.out / "benchmark"))
+        return None
+    run_graph = checked_graph(
+        args.out / "graph.yaml", args.set, local=True, runs=True, data=_eval_graph(args, source.resolve())
+    )
+    print_notice(lidar_notice(run_graph, scenarios, "--data"))
+    return source.resolve()
+
+
 def run(args: argparse.Namespace) -> int:
-    from umad_common.commands.common import load_graph_or_exit
+    started = time.perf_counter()
+    args.every, layout = every_and_layout(args.protocol, args.every)
+    source = check_inputs(args)
+
     from umad_common.dataflow.exit_codes import EXIT_INCOMPLETE, EXIT_STOPPED
     from umad_common.dataflow.launcher import Launcher
     from umad_common.viz.report import write_report
     from umad_replay.sweep import sweep_log
 
-    started = time.perf_counter()
-    args.every, layout = every_and_layout(args.protocol, args.every)
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    for path, what in ((args.world_model, "--world-model"), (args.features, "--features"), (args.mnad, "--mnad")):
-        if not path.is_file():
-            print(f"{what} {path}: weight file not found", file=sys.stderr)
-            return 1
-    if args.sam_checkpoint and not args.sam_checkpoint.is_file():
-        print(f"--sam-checkpoint {args.sam_checkpoint}: checkpoint file not found", file=sys.stderr)
-        return 1
-    if args.sam_checkpoint and not Path(args.sam_python).is_file():
-        print(
-            f"--sam-python {args.sam_python}: no such interpreter; build the SAM environment with "
-            f"`bash {SAM_ENV_SCRIPT} .venv-sam`",
-            file=sys.stderr,
-        )
-        return 1
-    data = args.data.resolve() if args.data else _builtin_benchmark(out / "benchmark", args.scenarios, args.frames)
-    source = data / "anomalous" if (data / "anomalous").is_dir() else data
-
+    if source is None:
+        data = _builtin_benchmark(out / "benchmark", args.scenarios, args.frames)
+        source = data / "anomalous" if (data / "anomalous").is_dir() else data
     graph_file = out / "graph.yaml"
     graph_file.write_text(yaml.safe_dump(_eval_graph(args, source), sort_keys=False))
-    graph = load_graph_or_exit(str(graph_file), args.set, local=True)
-    if graph is None:
-        return 1
+    graph = checked_graph(str(graph_file), args.set, local=True, runs=True)
     record = out / "run.mcap"
     print(f"evaluating {source} -> {out}", flush=True)
     code = Launcher(graph, graph_file, args.set, record, hub=args.hub).run()

@@ -25,7 +25,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from umad_common import DEFAULT_GRAPH, LIVE_GRAPH
+from umad_common import DEFAULT_GRAPH, LIVE_GRAPH, resolve_path
 from umad_common.dataflow.assignments import GraphError, merge_params
 from umad_common.dataflow.bus import DEFAULT_HUB, TlsConfig
 from umad_common.dataflow.operator import Operator, Source, UnknownOperatorError, load_operator_class
@@ -207,7 +207,9 @@ def _read_yaml(path: Path) -> Any:
     try:
         return yaml.safe_load(path.read_text())
     except FileNotFoundError:
-        raise GraphError([f"{path}: graph file not found"]) from None
+        raise GraphError(
+            [f"{path}: graph file not found; expected a graph YAML file (see `umad graph check --help`)"]
+        ) from None
     except yaml.YAMLError as exc:
         raise GraphError([f"{path}: not valid YAML ({exc})"]) from None
 
@@ -304,6 +306,20 @@ def missing_local_files(graph: Graph) -> list[str]:
         path = getattr(tls, name) if tls else None
         if path and not Path(path).is_file():
             problems.append(f"tls.{name}: {path} not found; expected a PEM file")
+    return problems
+
+
+def missing_input_files(graph: Graph) -> list[str]:
+    """The files and folders the operators read at start (`Operator.input_paths`) that do not exist,
+    each resolved as the operator will resolve it. Checked by the verbs that run the whole graph here
+    (`umad launch`, `umad eval`), not by `umad graph check`: the data is the run's, not the graph's."""
+    problems = []
+    for op in graph.spec.operators:
+        cls = graph.classes[op.id]
+        for param, path in cls.input_paths(cls.validate_params(op.params)).items():
+            resolved = resolve_path(path, graph.base_dir)
+            if not resolved.exists():
+                problems.append(f"operator {op.id!r}: {param} {path}: not found at {resolved}")
     return problems
 
 

@@ -159,6 +159,12 @@ class Operator:
         return cls.Params.model_validate(dict(params))
 
     @classmethod
+    def input_paths(cls, params: BaseModel) -> dict[str, str]:
+        """The files or folders these (valid) parameters name that the operator reads at start,
+        `{parameter: path as written}`: a launcher checks they exist before it starts anything."""
+        return {}
+
+    @classmethod
     def wiring_problems(cls, params: BaseModel, wired: set[str]) -> list[str]:
         """What `umad graph check` should refuse about these (valid) parameters given the wired input
         ports, e.g. an optional port the chosen method reads; empty when all is well."""
