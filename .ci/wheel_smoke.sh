@@ -31,9 +31,9 @@ import importlib.util
 taken = [name for name in ('operators', 'replay') if importlib.util.find_spec(name)]
 assert not taken, f'the wheel installs top-level modules {taken}; expected umad_operators and umad_replay'
 "
+SECONDS=0
 "$umad" generate synthetic drives --normal 0 --anomalous 1 --frames 10 --workers 1 2> generate.log \
     || { cat generate.log; exit 1; }
-SECONDS=0
 "$umad" eval --data drives --out report > eval.log 2>&1 || { cat eval.log; exit 1; }
 test -s report/index.html && test -s report/results.json
 echo "generated one drive and evaluated it in ${SECONDS}s: $(tail -n 1 eval.log)"
