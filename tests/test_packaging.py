@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from umad_common import ASSETS, DEFAULT_GRAPH, LIVE_GRAPH, SAM_ENV_SCRIPT, resolve_path, shipped_file
+from umad_common.dataflow import plugins
 from umad_common.dataflow.graph import graph_base_dir, is_builtin_graph
 from umad_common.dataflow.operator import UnknownOperatorError, load_operator_class
 from umad_operators.fusion import Fusion
@@ -79,9 +80,11 @@ def test_a_builtin_graph_resolves_against_the_working_folder(tmp_path, monkeypat
     assert graph_base_dir(copy, "..") == copy.parent / ".."
 
 
-def test_an_old_import_path_loads_with_one_notice_naming_the_new(caplog):
+def test_an_old_import_path_loads_with_one_notice_naming_the_new(caplog, monkeypatch):
+    monkeypatch.setattr(plugins, "_noticed", set())
     with caplog.at_level(logging.WARNING, logger="umad.plugins"):
         cls = load_operator_class(uses="operators.fusion:Fusion")
+        assert load_operator_class(uses="operators.fusion:Fusion") is cls  # a graph is validated again: no notice
     assert cls is Fusion
     assert [r.getMessage() for r in caplog.records] == [
         "operator 'operators.fusion:Fusion': deprecated, package 'operators' is now 'umad_operators'; "
@@ -89,7 +92,8 @@ def test_an_old_import_path_loads_with_one_notice_naming_the_new(caplog):
     ]
 
 
-def test_a_current_import_path_loads_without_notice(caplog):
+def test_a_current_import_path_loads_without_notice(caplog, monkeypatch):
+    monkeypatch.setattr(plugins, "_noticed", set())
     with caplog.at_level(logging.WARNING, logger="umad.plugins"):
         assert load_operator_class(uses="umad_operators.fusion:Fusion") is Fusion
         with pytest.raises(UnknownOperatorError, match="umad_replay.nothing"):

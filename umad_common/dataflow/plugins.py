@@ -13,14 +13,19 @@ from collections.abc import Mapping
 RENAMED_PACKAGES = {"operators": "umad_operators", "replay": "umad_replay"}
 
 log = logging.getLogger("umad.plugins")
+_noticed: set[str] = set()  # old import paths this process has named in a notice (a graph is validated often)
 
 
 def current_import_path(path: str, what: str) -> str:
-    """`path` with a renamed package's old name replaced by its new one, and a one-line notice saying so."""
+    """`path` with a renamed package's old name replaced by its new one, and a one-line notice saying
+    so (once per path and process)."""
     package = re.split(r"[.:]", path, maxsplit=1)[0]
     if package not in RENAMED_PACKAGES:
         return path
     renamed = RENAMED_PACKAGES[package] + path[len(package) :]
+    if path in _noticed:
+        return renamed
+    _noticed.add(path)
     log.warning(
         "%s %r: deprecated, package %r is now %r; use %r", what, path, package, RENAMED_PACKAGES[package], renamed
     )
