@@ -137,7 +137,11 @@ def installed_version(distribution: str) -> str:
         return "(not installed)"
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser of every verb. Given the command line, only the verb it names gets its arguments
+    (the others are listed with what they do): a verb's `add_arguments` may import its module's
+    dependencies (pydantic, for `--device`), and a wrong input must be answered fast."""
+    named = [word for word in argv if not word.startswith("-")][:2] if argv is not None else None
     parser = argparse.ArgumentParser(
         prog="umad",
         description=__doc__.splitlines()[0],
@@ -162,14 +166,15 @@ def build_parser() -> argparse.ArgumentParser:
                 groups[words[0]] = group.add_subparsers(dest="subverb", required=True, metavar="WHAT")
             sub = groups[words[0]].add_parser(words[1], help=help_text, description=description, formatter_class=raw)
         sub.set_defaults(_module=module_name, _words=words)
-        importlib.import_module(module_name).add_arguments(sub)
+        if named is None or list(words) == named[: len(words)]:
+            importlib.import_module(module_name).add_arguments(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     keep_freed_memory()
-    parser = build_parser()
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
