@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from umad_common.dataflow.graph import Graph
 
-AnoVoxLayout = "an AnoVox folder: Scenario_* drive folders, or anomalous/ and normal/ holding them as `umad generate synthetic` writes"
+ANOVOX_FOLDER = "an AnoVox folder: Scenario_* drive folders, or anomalous/ and normal/ holding them as `umad generate synthetic` writes"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 SAFETENSORS_MAX_HEADER = 100_000_000  # bytes; larger is not a header
 
@@ -133,20 +133,20 @@ def evaluation_run(path: Path, name: str) -> Path:
 
 def drives(data: Path, name: str) -> list[Path]:
     """The AnoVox drive (Scenario_*) folders under `data`; InputError when there are none."""
-    existing_folder(data, name, AnoVoxLayout)
+    existing_folder(data, name, ANOVOX_FOLDER)
     from umad_common.datasets.anovox import find_scenarios
 
     found = find_scenarios(data)
     if not found:
         raise InputError.of(
-            f"{name} {data}", "holds no drive (no Scenario_* folder with a camera folder)", AnoVoxLayout
+            f"{name} {data}", "holds no drive (no Scenario_* folder with a camera folder)", ANOVOX_FOLDER
         )
     return found
 
 
 def normal_drives(data: Path, name: str) -> list[Path]:
     """The drives a training verb reads: DATA/normal/ when it exists, else DATA's drives."""
-    existing_folder(data, name, AnoVoxLayout)
+    existing_folder(data, name, ANOVOX_FOLDER)
     return drives(data / "normal" if (data / "normal").is_dir() else data, name)
 
 
@@ -168,7 +168,7 @@ def training_inputs(data: Path, out: Path, suffix: str) -> None:
 def evaluation_drives(data: Path, name: str) -> tuple[Path, list[Path]]:
     """The folder `umad eval` scores (DATA/anomalous/ when it exists, else DATA) and its drives, none
     of them in DATA/normal/; each must have the semantic camera the anomaly labels come from."""
-    existing_folder(data, name, AnoVoxLayout)
+    existing_folder(data, name, ANOVOX_FOLDER)
     from umad_common.datasets.anovox import find_scenarios
 
     source = data / "anomalous" if (data / "anomalous").is_dir() else data
@@ -180,7 +180,7 @@ def evaluation_drives(data: Path, name: str) -> tuple[Path, list[Path]]:
             if normal
             else "no anomalous drives (no Scenario_* folder with a camera folder)"
         )
-        raise InputError.of(f"{name} {data}", problem, f"{AnoVoxLayout}; its anomalous/ drives are scored")
+        raise InputError.of(f"{name} {data}", problem, f"{ANOVOX_FOLDER}; its anomalous/ drives are scored")
     unlabelled = [d for d in found if "semantic" not in _sensor_folders(d, name)]
     if unlabelled:
         raise InputError.of(
