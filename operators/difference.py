@@ -71,6 +71,15 @@ class Difference(Operator):
         )
         device: DeviceName = device_field()
 
+    @classmethod
+    def input_paths(cls, params: BaseModel) -> dict[str, str]:
+        paths = {}
+        if params.metric == "perceptual":
+            paths = {"vgg_weights": params.vgg_weights} if params.vgg_weights else {"features": params.features}
+        if params.normalization == "calibrated":
+            paths["calibration"] = params.calibration
+        return paths
+
     def __init__(self, params: BaseModel | dict | None = None, context: Context | None = None):
         super().__init__(params, context)
         self.silent_runs: set[str] = set()  # runs whose lack of lidar returns was said already

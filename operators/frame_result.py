@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from operators.mask_refiner import map_and_masks
 from umad_common.dataflow import Frame, Input, Operator, Output, input_array
 from umad_common.refine import mask_scores
+from umad_operators.mask_refiner import map_and_masks
 
 
 class FrameResultParams(BaseModel):

@@ -38,6 +38,10 @@ class MnadPredictor(Operator):
     outputs = ("map",)
     Params = MnadParams
 
+    @classmethod
+    def input_paths(cls, params: BaseModel) -> dict[str, str]:
+        return {} if params.weights is None else {"weights": params.weights}
+
     def __init__(self, params=None, context=None):
         super().__init__(params, context)
         import torch

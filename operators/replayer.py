@@ -41,6 +41,10 @@ class Replayer(Source):
             None, ge=1, description="at most this many frames per run after sampling (None: all)"
         )
 
+    @classmethod
+    def input_paths(cls, params: BaseModel) -> dict[str, str]:
+        return {"source": params.source}
+
     def __init__(self, params: BaseModel | dict | None = None, context: Context | None = None):
         super().__init__(params, context)
         root = self.context.resolve(self.params.source)

@@ -91,6 +91,10 @@ class WorldModelPredictor(Operator):
     ordered = True
     fixed_params = ("model", "device", "precision")  # precision: the recurrent state keeps the dtype it was made in
 
+    @classmethod
+    def input_paths(cls, params: BaseModel) -> dict[str, str]:
+        return {"model": params.model}
+
     def __init__(self, params: BaseModel | dict | None = None, context=None):
         super().__init__(params, context)
         import torch  # here, not at the top: every replica imports this module to check the graph

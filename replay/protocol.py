@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-from umad_common import recorded_path
+from umad_common import recorded_path, resolve_path
 from umad_common.dataflow.assignments import merge_params, parse_assignment
 from umad_common.dataflow.operator import load_operator_class
 from umad_common.datasets.anovox import scenario_weathers
@@ -86,7 +86,7 @@ def run_protocol(metadata: dict[str, str], map_notes: dict[str, dict[str, Any]])
     base = Path(metadata.get("base_dir") or ".")
 
     def resolve(path: str) -> Path:
-        return Path(path) if Path(path).is_absolute() else base / path
+        return resolve_path(path, base)
 
     protocol: dict[str, Any] = {"version": metadata.get("version"), "models": {}, "label_resize": LABEL_RESIZE}
     for op_id, (kind, params) in operator_params(graph, sets_by_op).items():

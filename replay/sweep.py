@@ -1,6 +1,6 @@
 """The paper's ablation from one recorded log: every fusion weight row x every mask setting, no model run.
 
-Frames come from the log through `replay.frames.frames_from_log` (truth, difference maps, masks per
+Frames come from the log through `umad_replay.frames.frames_from_log` (truth, difference maps, masks per
 segmenter, the MNAD map, regrouped by `(run, seq)`). Each configuration fuses and refines exactly as the live operators do (`umad_common.refine.fuse`
 and `refine`, so a sweep row equals the live pipeline's numbers) and streams its pixels into its own
 `PixelMetrics`: memory is one 1 MiB histogram per configuration plus a few frames in flight. With
@@ -19,7 +19,7 @@ every min-max group with it added at `LIDAR_SHARE`. Rows of the paper's maps at 
 are scored per segmenter with the refinements mean, max, single (the paper's), single_keep_raw and
 mean_pixel (ours), plus no mask; the others with `mean` and `mean_pixel` refinement and no mask
 only. A row whose map the log lacks (a graph without `diff_ssim_shift`) is skipped.
-The log's metadata gives the protocol (`replay.protocol`): data, models, the PD network.
+The log's metadata gives the protocol (`umad_replay.protocol`): data, models, the PD network.
 """
 
 from __future__ import annotations
@@ -33,8 +33,6 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from replay.frames import FrameRecord, LogStats, frames_from_log
-from replay.protocol import run_protocol
 from umad_common.dataflow.mcap_log import LogError, describe_loss, read_metadata, recording_outcome
 from umad_common.differences.normalization import robust
 from umad_common.metrics.components import ComponentMetrics
@@ -49,6 +47,8 @@ from umad_common.refine import (
     resize_nearest,
     with_pixel_share,
 )
+from umad_replay.frames import FrameRecord, LogStats, frames_from_log
+from umad_replay.protocol import run_protocol
 
 PAPER_METRICS = ("abs", "mse", "ssim", "perceptual", "temporal")
 REFINE_MODES = ("mean", "max", "single", "single_keep_raw", "mean_pixel")  # the last two are ours, not the paper's
@@ -260,7 +260,7 @@ class SweepResult:
     frames_evaluated: dict[str, list[int]] = field(default_factory=dict)  # run -> seqs scored, ascending
     score_shapes: set[tuple[int, int]] = field(default_factory=set)  # (h, w) the pixels were scored at
     truth_shapes: set[tuple[int, int]] = field(default_factory=set)  # (H, W) of the labels before resizing
-    protocol: dict = field(default_factory=dict)  # what the run used: data, models, PD network (replay.protocol)
+    protocol: dict = field(default_factory=dict)  # what the run used: data, models, PD network (umad_replay.protocol)
     every: int = 1  # the sweep scored frames with seq % every == 0
     diagnosis: dict = field(default_factory=dict)  # Diagnosis.compute(): error location, score since visible
 

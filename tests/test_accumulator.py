@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from operators.accumulator import Accumulator
 from umad_common.dataflow import Context, Frame
 from umad_common.dataflow.messages import Message
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import resize_nearest
+from umad_operators.accumulator import Accumulator
 
 
 def make_frame(run, seq, labels, maps):

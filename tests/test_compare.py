@@ -8,11 +8,11 @@ import json
 
 import pytest
 
-from replay.sweep import sweep_log
 from tests.test_sweep import synthetic_frames, write_log
 from umad_common.cli import main as umad_main
 from umad_common.viz.compare import frames_difference, load_results
 from umad_common.viz.report import write_report
+from umad_replay.sweep import sweep_log
 
 
 def evaluation(tmp_path_factory, name: str, seed: int, n: int = 6):
@@ -91,8 +91,8 @@ def test_frames_difference_names_scenarios_and_every_k(runs):
 
 
 def test_compare_names_a_folder_without_results(tmp_path, capsys):
-    assert umad_main(["compare", str(tmp_path), str(tmp_path)]) == 1
-    assert "no results.json" in capsys.readouterr().err
+    assert umad_main(["compare", str(tmp_path), str(tmp_path)]) == 2  # refused before reading anything
+    assert f"RUN_A {tmp_path / 'results.json'}: no such file; expected an evaluation folder" in capsys.readouterr().err
     (tmp_path / "results.json").write_text(json.dumps({"rows": []}))
     assert umad_main(["compare", str(tmp_path), str(tmp_path)]) == 1
     assert "re-run `umad sweep`" in capsys.readouterr().err

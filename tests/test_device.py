@@ -12,8 +12,6 @@ import pytest
 import torch
 from pydantic import ValidationError
 
-from operators.mnad import MnadParams, MnadPredictor
-from operators.world_model import WorldModelParams, WorldModelPredictor
 from tests.test_world_model import TINY, sensor_frame, tiny_model, write_drive
 from umad_common import ASSETS
 from umad_common.commands import train_features, train_mnad, train_segmenter, train_world_model
@@ -24,6 +22,8 @@ from umad_common.differences import MetricOptions, build_metric
 from umad_common.models.device import resolve_device
 from umad_common.models.mnad import Mnad, MnadConfig, load_mnad, save_mnad, to_input
 from umad_common.models.world_model import WorldModelConfig, load_world_model, save_world_model
+from umad_operators.mnad import MnadParams, MnadPredictor
+from umad_operators.world_model import WorldModelParams, WorldModelPredictor
 
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 TRAIN_VERBS = (train_world_model, train_features, train_mnad, train_segmenter)

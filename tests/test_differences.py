@@ -354,7 +354,7 @@ def frame_message(arrays) -> Frame:
 
 @pytest.mark.parametrize("metric", ["abs", "mse", "ssim", "perceptual", "temporal"])
 def test_operator_outputs_normalised_map(metric, feature_file, tmp_path):
-    from operators.difference import Difference
+    from umad_operators.difference import Difference
 
     calibration = tmp_path / "calibration.json"
     fitter = CalibrationFitter()
@@ -386,7 +386,7 @@ def test_operator_outputs_normalised_map(metric, feature_file, tmp_path):
 def test_operator_fails_early_and_loads_user_metric(tmp_path, monkeypatch):
     from pydantic import ValidationError
 
-    from operators.difference import Difference
+    from umad_operators.difference import Difference
 
     with pytest.raises(ValidationError):
         Difference({"metric": "abs", "colour": "red"})
@@ -512,8 +512,8 @@ def test_lidar_difference_is_the_share_of_the_expected_range_that_something_bloc
 
 
 def test_lidar_operator_without_returns_says_so_once_and_fusion_leaves_its_map_out(caplog):
-    from operators.difference import Difference
-    from operators.fusion import Fusion
+    from umad_operators.difference import Difference
+    from umad_operators.fusion import Fusion
 
     target, recon, preds, valid = random_frame(h=20, w=30)
     camera_only = Message("run", 0, arrays={"target": target, "recon": recon, "preds": preds, "pred_valid": valid})

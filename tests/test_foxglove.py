@@ -18,9 +18,6 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from operators.frame_result import FrameResult
-from operators.mask_refiner import MaskRefiner
-from operators.replayer import Replayer
 from umad_common import DEFAULT_GRAPH, LIVE_GRAPH
 from umad_common.dataflow import Frame
 from umad_common.dataflow.graph import load_graph
@@ -37,6 +34,9 @@ from umad_common.viz.foxglove import (
     score_colour,
     vendored_schemas,
 )
+from umad_operators.frame_result import FrameResult
+from umad_operators.mask_refiner import MaskRefiner
+from umad_operators.replayer import Replayer
 
 FRAMES = 4
 MAP_SHAPE = (32, 48)  # the maps' and masks' (h, w): the world model's size, smaller than the camera's

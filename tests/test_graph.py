@@ -99,7 +99,7 @@ def test_graph_check_cli_exit_codes(tmp_path):
     ok = run_umad("graph", "check", str(good))
     assert ok.returncode == 0, ok.stderr
     fail = run_umad("graph", "check", str(bad))
-    assert fail.returncode != 0
+    assert fail.returncode == 2
     assert "replicas must be >= 1" in fail.stderr and "'warp_drive'" in fail.stderr
 
 
@@ -118,7 +118,7 @@ def test_check_names_missing_interpreters_and_tls_files_but_workers_load_the_gra
     path.write_text(yaml.safe_dump(data))
     load_graph(path)  # a worker elsewhere needs neither the other environment nor this machine's files
     result = run_umad("graph", "check", str(path))
-    assert result.returncode == 1
+    assert result.returncode == 2
     assert f"python interpreter {tmp_path / 'nowhere/bin/python'} not found" in result.stderr
     assert f"tls.root_ca: {tmp_path / 'ca.pem'} not found" in result.stderr
     assert f"operator 'scale': certificate {tmp_path / 'certs/op-scale.pem'} not found (tls.certs)" in result.stderr

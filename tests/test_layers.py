@@ -1,5 +1,6 @@
-"""Imports point one way: operators/ and replay/ build on umad_common; umad_common (outside the
-CLI in commands/) imports neither, and the benchmarks the CLI runs do not import the CLI."""
+"""Imports point one way: operators/ and replay/ (installed as umad_operators and umad_replay) build on
+umad_common; umad_common (outside the CLI: cli.py and commands/) imports neither, and the benchmarks
+the CLI runs do not import the CLI."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import free_port
+from umad_common.dataflow.plugins import RENAMED_PACKAGES
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -51,15 +53,26 @@ def offending(folder: str, forbidden: tuple[str, ...], skip: tuple[str, ...] = (
     [
         (
             "umad_common",
-            ("replay", "operators", "umad_common.commands"),
-            ("umad_common/commands/", "umad_common/benchmarks/"),
+            ("umad_replay", "umad_operators", "umad_common.commands"),
+            ("umad_common/cli.py", "umad_common/commands/", "umad_common/benchmarks/"),
         ),
-        ("umad_common/benchmarks", ("replay", "umad_common.commands"), ()),
-        ("operators", ("replay", "umad_common.commands"), ()),
+        ("umad_common/benchmarks", ("umad_replay", "umad_common.commands"), ()),
+        ("operators", ("umad_replay", "umad_common.commands"), ()),
     ],
 )
 def test_imports_point_one_way(folder, forbidden, skip):
     assert offending(folder, forbidden, skip) == {}
+
+
+def test_no_module_imports_the_repository_folder_names():
+    """operators/ and replay/ install as umad_operators and umad_replay: an import of the folder's
+    name works in a checkout but not in an installed wheel."""
+    old_names = tuple(RENAMED_PACKAGES)
+    assert {
+        folder: found
+        for folder in ("umad_common", "operators", "replay", "tests")
+        if (found := offending(folder, old_names))
+    } == {}
 
 
 def test_a_command_to_a_running_graph_imports_no_operator():
@@ -68,7 +81,7 @@ def test_a_command_to_a_running_graph_imports_no_operator():
     probe = (
         "import sys; from umad_common.cli import main; "
         f"code = main(['set', 'fusion.weights.abs=0.3', '--connect', 'tcp/127.0.0.1:{free_port()}']); "
-        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'sklearn', 'skimage', 'operators', 'numpy')); "
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'sklearn', 'skimage', 'umad_operators', 'numpy')); "
         "print(code, heavy)"
     )
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, timeout=120)

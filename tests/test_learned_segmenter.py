@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 import torch
 
-from operators.segmenter import Segmenter
 from tests.test_segmenter import H, W, scene_frame
 from tests.test_world_model import write_drive
 from umad_common.dataflow import Context
 from umad_common.models.weights import WeightsError
 from umad_common.segmentation import SEGMENTERS, build_segmenter
 from umad_common.segmentation.learned import merge_small_regions
+from umad_operators.segmenter import Segmenter
 
 
 def train_args(data, out, *extra: str) -> argparse.Namespace:

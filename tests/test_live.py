@@ -8,13 +8,13 @@ import pytest
 import yaml
 from pydantic import ValidationError
 
-from operators.frame_result import FrameResult, frame_result, mask_boxes
 from tests.conftest import run_umad
 from umad_common import LIVE_GRAPH
 from umad_common.dataflow import Frame
 from umad_common.dataflow.graph import load_graph
 from umad_common.dataflow.messages import Message
 from umad_common.viz.foxglove import views
+from umad_operators.frame_result import FrameResult, frame_result, mask_boxes
 
 
 def test_live_graph_checks_and_is_umad_alone_at_10_hz():

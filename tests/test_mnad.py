@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from operators.mnad import MnadPredictor
 from umad_common.dataflow import Context, Frame
 from umad_common.dataflow.messages import Message
 from umad_common.models.mnad import Mnad, MnadConfig, load_mnad, save_mnad, to_input
 from umad_common.models.weights import WeightsError
 from umad_common.training.train_mnad import MnadTrainingConfig, train_mnad
+from umad_operators.mnad import MnadPredictor
 
 torch.set_num_threads(1)
 TINY = MnadConfig(height=32, width=48, widths=(4, 8, 8), feature_dim=16, memory_items=4)

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from operators.fusion import Fusion
-from operators.mask_refiner import MaskRefiner
 from umad_common.dataflow import Frame
 from umad_common.dataflow.messages import Message
 from umad_common.refine import fuse, mask_scores, refine, resize_nearest
+from umad_operators.fusion import Fusion
+from umad_operators.mask_refiner import MaskRefiner
 
 FUSED = np.array(
     [

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from operators.replayer import Replayer
 from umad_common.dataflow.messages import Message, decode, encode
 from umad_common.dataflow.operator import Context, load_operator_class
 from umad_common.datasets.anovox import AnoVoxScenario, DatasetError, find_scenarios, write_benchmark_scenario
 from umad_common.datasets.synthetic.generator import generate_benchmark
+from umad_operators.replayer import Replayer
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""The `sam` segmenter end to end in its own environment (`.ci/sam_env.sh`): a randomly initialised
+"""The `sam` segmenter end to end in its own environment (`umad_common/scripts/sam_env.sh`): a randomly initialised
 vit_b saved as a checkpoint file, loaded by the operator, run on a small frame -- the real code path.
 
 Runs only when UMAD_SAM_PYTHON names that environment's python; the errors the main environment
@@ -24,7 +24,7 @@ END_TO_END = textwrap.dedent(
     import numpy as np
     import torch
     from segment_anything import sam_model_registry
-    from operators.segmenter import Segmenter
+    from umad_operators.segmenter import Segmenter
     from umad_common.dataflow.messages import Message
     from umad_common.dataflow import Frame
 

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from operators.segmenter import Segmenter
 from umad_common.dataflow import Context, Frame
 from umad_common.dataflow.messages import Message
 from umad_common.refine import resize_nearest
 from umad_common.segmentation import SEGMENTERS, connected_regions, labels_to_masks
+from umad_operators.segmenter import Segmenter
 
 H, W = 128, 192  # world model size
 FULL_H, FULL_W = 256, 384  # synthetic world render size

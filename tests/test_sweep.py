@@ -13,7 +13,6 @@ import pytest
 from mcap.writer import CompressionType, Writer
 from sklearn.metrics import average_precision_score, roc_auc_score
 
-from replay.sweep import REFINE_MODES, Config, MaskSet, paper_weight_rows, sweep_log, weight_rows, weights_label
 from umad_common.cli import build_parser
 from umad_common.cli import main as umad_main
 from umad_common.commands.evaluate import every_and_layout
@@ -23,6 +22,7 @@ from umad_common.metrics.components import component_metrics
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import refine
 from umad_common.viz.report import write_report
+from umad_replay.sweep import REFINE_MODES, Config, MaskSet, paper_weight_rows, sweep_log, weight_rows, weights_label
 
 H, W, h, w = 16, 24, 8, 12  # camera / truth size, model size
 METRIC_OPS = {
@@ -281,7 +281,7 @@ def test_rows_and_settings(result):
 
 
 def test_two_segmenters_of_one_method_are_named_by_their_ops():
-    from replay.sweep import masks_name
+    from umad_replay.sweep import masks_name
 
     segmenters = {"seg_gt": "gt", "segment_unsup": "geometry", "segment_nosnap": "geometry"}
     assert masks_name(segmenters, "seg_gt") == "gt"
@@ -500,7 +500,7 @@ def test_per_scenario_names_each_drives_weather(result, log_and_truth, tmp_path)
 
 
 def test_protocol_reads_each_drives_weather_from_the_data_folder(tmp_path):
-    from replay.protocol import run_protocol
+    from umad_replay.protocol import run_protocol
 
     config = tmp_path / "data" / "Scenario_Configuration_Files"
     config.mkdir(parents=True)

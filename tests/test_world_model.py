@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import torch
 
-from operators.world_model import WorldModelPredictor
 from umad_common.dataflow import Frame
 from umad_common.dataflow.messages import Message
 from umad_common.models.weights import WeightsError
@@ -25,6 +24,7 @@ from umad_common.models.world_model import (
     load_world_model,
     save_world_model,
 )
+from umad_operators.world_model import WorldModelPredictor
 
 torch.set_num_threads(1)
 

@@ -20,8 +20,8 @@ WARMUP_FRAMES = 4
 
 def drive_frames(frames: int) -> list[SourceFrame]:
     """The replayer's frames of one generated anomalous drive."""
-    from operators.replayer import Replayer
     from umad_common.datasets.synthetic.generator import generate_benchmark
+    from umad_operators.replayer import Replayer
 
     data = Path(tempfile.mkdtemp(prefix="umad-bench-predictors-"))
     generate_benchmark(data, 0, 1, frames, 1, (384, 256))
@@ -41,8 +41,8 @@ def frames_per_second(operator, frames: list[SourceFrame], ports: tuple[str, ...
 def bench_predictors(frames: int = 40) -> dict:
     import torch
 
-    from operators.mnad import MnadPredictor
-    from operators.world_model import WorldModelPredictor
+    from umad_operators.mnad import MnadPredictor
+    from umad_operators.world_model import WorldModelPredictor
 
     drive = drive_frames(frames + WARMUP_FRAMES)
     result: dict = {"frames": len(drive) - WARMUP_FRAMES, "camera": "384x256", "model_size": "192x128"}

@@ -134,9 +134,9 @@ def fused_maps_along(
     world model is stateful); each map is min-max normalised per frame and fused with equal weights,
     the paper's plain setting.
     """
-    from operators.replayer import frame_outputs
-    from operators.world_model import WorldModelPredictor
     from umad_common.differences import build_metric, minmax
+    from umad_operators.replayer import frame_outputs
+    from umad_operators.world_model import WorldModelPredictor
 
     predictor = WorldModelPredictor({"model": str(world_model), "threads": 1})
     ports = [port.name for port in WorldModelPredictor.inputs]
@@ -202,7 +202,7 @@ def frame_quality(
 
 def measure_segmenter(params: dict, frames: Iterable[LabelledFrame]) -> SegmenterQuality:
     """Run the segmenter operator with `params` on every frame and score its masks."""
-    from operators.segmenter import Segmenter
+    from umad_operators.segmenter import Segmenter
 
     segmenter = Segmenter(params)
     count = total = covered = masks_total = 0

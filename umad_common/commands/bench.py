@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from umad_common.commands.checks import drives, free_hub_port, model_file, writable_output
+
 BENCHES = (
     "bus",
     "metrics",
@@ -22,6 +24,7 @@ BENCHES = (
     "control",
     "live",
 )
+HUB_BENCHES = {"bus", "scaling", "record", "live", "control", "pipeline"}  # they start graphs on --hub
 
 
 def add_arguments(parser):
@@ -55,6 +58,14 @@ def add_arguments(parser):
 
 def run(args) -> int:
     which = BENCHES if args.which == "all" else (args.which,)
+    if args.out:
+        writable_output(args.out, "--out", folder=False)
+    if args.data:
+        drives(args.data, "--data")
+    if args.world_model:
+        model_file(args.world_model, "--world-model", "world model")
+    if set(which) & HUB_BENCHES:
+        free_hub_port(args.hub, "--hub")
     results = {}
     for name in which:
         print(f"running bench {name} ...", flush=True)

@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from umad_common import ASSETS, recorded_path
+from umad_common.commands.checks import model_file, normal_drives, writable_output
 
 log = logging.getLogger("umad.calibrate")
 
@@ -81,9 +82,9 @@ def calibration_drives(data: Path, record: dict) -> tuple[list[Path], str]:
 def sensor_frames(scenario, limit: int) -> Iterator:
     """The first `limit` frames of a label-free scenario (`label_free_scenario`: its reader cannot
     open a label file) as the replayer sends them to the world model: camera, lidar, ego, route."""
-    from operators.replayer import frame_outputs
-    from operators.world_model import WorldModelPredictor
     from umad_common.dataflow.operator import frame_of
+    from umad_operators.replayer import frame_outputs
+    from umad_operators.world_model import WorldModelPredictor
 
     ports = [port.name for port in WorldModelPredictor.inputs]
     for seq in range(min(len(scenario), limit)):
@@ -91,13 +92,18 @@ def sensor_frames(scenario, limit: int) -> Iterator:
 
 
 def run(args: argparse.Namespace) -> int:
+    normal_drives(args.data, "DATA")
+    model_file(args.world_model, "--world-model", "world model")
+    if args.features is not None:
+        model_file(args.features, "--features", "perceptual feature net")
+    writable_output(args.out, "--out", folder=False)
     import torch
     from tqdm import tqdm
 
-    from operators.world_model import WorldModelPredictor
     from umad_common.datasets.anovox import label_free_scenario
     from umad_common.differences import METRICS, CalibrationFitter, MetricOptions, build_metric, range_pairs
     from umad_common.models.weights import weight_paths
+    from umad_operators.world_model import WorldModelPredictor
 
     if args.frames < 1:
         raise SystemExit(f"--frames is {args.frames}; expected at least 1")

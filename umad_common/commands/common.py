@@ -10,14 +10,12 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any
 
 from umad_common import DEFAULT_GRAPH
-from umad_common.dataflow.assignments import GraphError, parse_sets
+from umad_common.commands.checks import existing_file
 from umad_common.dataflow.certificates import CONTROL, add_certificate_arguments
-
-if TYPE_CHECKING:
-    from umad_common.dataflow.graph import Graph
 
 CONNECT_TIMEOUT_S = 10.0  # how long a command waits for the hub's answer once connected
 ANSWER_TIMEOUT_S = 30.0  # a replica answers between two frames; only a hung one takes this long
@@ -30,24 +28,6 @@ def add_graph_argument(parser: argparse.ArgumentParser, positional: bool = False
         )
     else:
         parser.add_argument("--graph", default=str(DEFAULT_GRAPH), help="graph file (default: the built-in graph.yaml)")
-
-
-def load_graph_or_exit(path: str, sets: list[str] | None = None, local: bool = False) -> Graph | None:
-    """The validated graph with `--set` overrides applied, or None after printing every problem.
-    `local`: the whole graph runs here, so also check the interpreters and TLS files it names."""
-    from umad_common.dataflow.graph import load_graph, missing_local_files
-
-    try:
-        graph = load_graph(path)
-        overrides = parse_sets(sets or [])
-        graph = graph.with_params(overrides) if overrides else graph
-        problems = missing_local_files(graph) if local else []
-        if problems:
-            raise GraphError([f"{path}: {p}" for p in problems])
-        return graph
-    except GraphError as exc:
-        print(exc, file=sys.stderr)
-        return None
 
 
 def add_connect_argument(parser: argparse.ArgumentParser) -> None:
@@ -88,6 +68,7 @@ def connect_to_running_graph(args: argparse.Namespace) -> RunningGraph | None:
 
     name, hub, tls = None, DEFAULT_HUB, None
     if args.graph:
+        existing_file(Path(args.graph), "--graph", "the graph file of the running graph")
         from umad_common.dataflow.graph import graph_address  # reads the file; imports no operator
 
         name, hub, tls = graph_address(args.graph, CONTROL, args.cert, args.key)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from umad_common.commands.checks import evaluation_run, writable_output
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_a", type=Path, help="evaluation folder (or its results.json): the reference A")
@@ -15,6 +17,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    evaluation_run(args.run_a, "RUN_A")
+    evaluation_run(args.run_b, "RUN_B")
+    if args.out is not None:
+        writable_output(args.out, "--out")
+
     from umad_common.viz.compare import compare_page, load_results
     from umad_common.viz.pages import render_page, write_page
 

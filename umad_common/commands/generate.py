@@ -18,6 +18,8 @@ import re
 import time
 from pathlib import Path
 
+from umad_common.commands.checks import InputError, writable_output
+
 log = logging.getLogger("umad.generate")
 
 
@@ -81,9 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from umad_common.datasets.synthetic.generator import STRESS, STRESS_LIGHT, generate_benchmark, write_preview
+    from umad_common.datasets.synthetic.generator import STRESS, STRESS_LIGHT
 
     stress = STRESS if args.stress else STRESS_LIGHT if args.stress_light else None
     defaults = {
@@ -94,18 +94,18 @@ def run(args: argparse.Namespace) -> int:
     for name, value in defaults.items():
         if getattr(args, name) is None:
             setattr(args, name, value)
-    for name in ("normal", "anomalous", "frames"):
-        if getattr(args, name) < (1 if name == "frames" else 0):
-            log.error("--%s must be %s, got %d", name, ">= 1" if name == "frames" else ">= 0", getattr(args, name))
-            return 2
-    if args.workers < 1:
-        log.error("--workers must be >= 1, got %d", args.workers)
-        return 2
-    out: Path = args.out
+    for name, least in (("normal", 0), ("anomalous", 0), ("frames", 1), ("workers", 1)):
+        if getattr(args, name) < least:
+            raise InputError.of(f"--{name} {getattr(args, name)}", f"is below {least}", f"at least {least}")
+    out: Path = writable_output(args.out, "OUT")
     for split in ("normal", "anomalous"):
         if (out / split).is_dir() and any((out / split).iterdir()):
-            log.error("%s already holds scenarios; choose an empty output folder", out / split)
-            return 2
+            raise InputError.of(f"OUT {out}", f"{split}/ already holds scenarios", "an empty or new output folder")
+
+    from tqdm import tqdm
+
+    from umad_common.datasets.synthetic.generator import generate_benchmark, write_preview
+
     total = (args.normal + args.anomalous) * args.frames
     started = time.perf_counter()
     desc = "generate synthetic" if stress is None else f"generate {stress.name.replace('_', ' ')} set"

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from umad_common.commands.common import add_graph_argument, load_graph_or_exit
+from umad_common.commands.checks import checked_graph
+from umad_common.commands.common import add_graph_argument
 
 
 def add_arguments(parser):
@@ -10,9 +11,7 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    graph = load_graph_or_exit(args.graph, local=True)
-    if graph is None:
-        return 1
+    graph = checked_graph(args.graph, local=True)
     ops = graph.spec.operators
     print(
         f"{args.graph}: ok ({len(ops)} operators, {sum(o.replicas for o in ops)} processes; sources {graph.sources()}, sinks {graph.sinks()})"

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 from umad_common import DEFAULT_GRAPH, LIVE_GRAPH
-from umad_common.commands.common import add_graph_argument, load_graph_or_exit
+from umad_common.commands.checks import InputError, checked_graph, free_hub_port, writable_output
+from umad_common.commands.common import add_graph_argument
 
 
 def add_arguments(parser):
@@ -24,13 +24,16 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
+    if args.live and args.graph != str(DEFAULT_GRAPH):
+        raise InputError.of(
+            f"--live and {args.graph}", "both given", "either a graph file or --live (the shipped live graph)"
+        )
+    path = str(LIVE_GRAPH) if args.live else args.graph
+    graph = checked_graph(path, args.set, local=True, runs=True)
+    free_hub_port(args.hub or graph.spec.hub, "--hub" if args.hub else f"{path}: hub")
+    if args.record:
+        writable_output(args.record, "--record", folder=False)
+
     from umad_common.dataflow.launcher import Launcher
 
-    if args.live and args.graph != str(DEFAULT_GRAPH):
-        print(f"umad launch: give either a graph file ({args.graph}) or --live, not both", file=sys.stderr)
-        return 1
-    path = str(LIVE_GRAPH) if args.live else args.graph
-    graph = load_graph_or_exit(path, args.set, local=True)
-    if graph is None:
-        return 1
     return Launcher(graph, Path(path), args.set, args.record, args.max_frames, args.hub).run()

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import sys
-
-from umad_common.commands.common import add_connect_argument, add_graph_argument, load_graph_or_exit
-from umad_common.dataflow.assignments import GraphError
+from umad_common.commands.checks import InputError, checked_graph
+from umad_common.commands.common import add_connect_argument, add_graph_argument
 from umad_common.dataflow.certificates import add_certificate_arguments
 
 
@@ -19,14 +17,11 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
+    graph = checked_graph(args.graph, args.set)
+    if args.id not in {op.id for op in graph.spec.operators}:
+        ids = ", ".join(op.id for op in graph.spec.operators)
+        raise InputError.of(f"operator {args.id!r}", f"not in the graph {args.graph}", f"one of its operators: {ids}")
+
     from umad_common.dataflow.runtime import run_operator
 
-    graph = load_graph_or_exit(args.graph, args.set)
-    if graph is None:
-        return 1
-    try:
-        graph.op(args.id)
-    except GraphError as exc:
-        print(exc, file=sys.stderr)
-        return 1
     run_operator(graph, args.id, args.replica, args.connect, cert=args.cert, key=args.key)  # ends the process

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import yaml
 
+from umad_common.commands.checks import InputError, checked_graph, free_hub_port, recorded_log, writable_output
+
 
 def add_arguments(parser):
     parser.add_argument("log", type=Path, help="MCAP log written by `umad launch --record`")
@@ -30,15 +32,12 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    from umad_common.commands.common import load_graph_or_exit
-    from umad_common.dataflow.launcher import Launcher
+    recorded_log(args.log, "log")
+    if args.record:
+        writable_output(args.record, "--record", folder=False)
+
     from umad_common.dataflow.mcap_log import LogError, read_log, read_metadata
 
-    try:
-        count = sum(1 for _ in read_log(args.log, allow_truncated=args.allow_truncated))
-    except LogError as exc:
-        print(exc, file=sys.stderr)
-        return 1
     graph_path = args.graph
     sets = list(args.set)
     if graph_path is None:
@@ -46,16 +45,22 @@ def run(args) -> int:
         sets = json.loads(metadata.get("sets") or "[]") + sets  # the recorded run's overrides, then these
         text = metadata.get("graph")
         if not text:
-            print(f"{args.log}: the log stores no graph; pass --graph", file=sys.stderr)
-            return 1
+            raise InputError.of(f"log {args.log}", "stores no graph", "--graph FILE naming the graph to replay it with")
         data = yaml.safe_load(text)
         data.setdefault("base_dir", metadata.get("base_dir") or str(Path.cwd()))
         tmp = Path(tempfile.mkdtemp(prefix="umad-replay-")) / "graph.yaml"
         tmp.write_text(yaml.safe_dump(data, sort_keys=False))
         graph_path = str(tmp)
         print(f"using the graph stored in the log ({tmp})")
-    graph = load_graph_or_exit(graph_path, sets)
-    if graph is None:
+    graph = checked_graph(graph_path, sets, local=True)
+    free_hub_port(graph.spec.hub, f"{graph_path}: hub")
+
+    from umad_common.dataflow.launcher import Launcher
+
+    try:
+        count = sum(1 for _ in read_log(args.log, allow_truncated=args.allow_truncated))
+    except LogError as exc:
+        print(exc, file=sys.stderr)
         return 1
     if args.rate == "realtime":
         sets += [f"{src}.pacing=realtime" for src in graph.sources()]

@@ -7,8 +7,7 @@ replica of every operator named applied its change.
 
 from __future__ import annotations
 
-import sys
-
+from umad_common.commands.checks import InputError
 from umad_common.commands.common import (
     ANSWER_TIMEOUT_S,
     add_running_graph_arguments,
@@ -29,8 +28,7 @@ def run(args) -> int:
     try:
         overrides = parse_sets(args.assignments)
     except GraphError as exc:
-        print(exc, file=sys.stderr)
-        return 1
+        raise InputError("\n".join(exc.problems)) from None
     running = connect_to_running_graph(args)
     if running is None:
         return 1

@@ -6,6 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from umad_common.commands.checks import InputError, recorded_log, writable_output
+
 log = logging.getLogger("umad.sweep")
 
 
@@ -47,11 +49,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from replay.sweep import sweep_log
-    from umad_common.viz.report import write_report
+    recorded_log(args.log, "log")
+    for flag, value, least in (("--every", args.every, 1), ("--lag", args.lag, 0), ("--overlays", args.overlays, 0)):
+        if value < least:
+            raise InputError.of(f"{flag} {value}", f"is below {least}", f"at least {least}")
+    writable_output(args.out, "--out")
 
-    if args.every < 1 or args.lag < 0 or args.overlays < 0:
-        raise SystemExit("--every must be >= 1, --lag and --overlays >= 0")
+    from umad_common.viz.report import write_report
+    from umad_replay.sweep import sweep_log
+
     result = sweep_log(
         args.log,
         lag=args.lag,

@@ -13,6 +13,8 @@ import argparse
 import json
 from pathlib import Path
 
+from umad_common.commands.checks import drives, model_file
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", type=Path, help="MODEL or MODEL.safetensors (with MODEL.json beside it)")
@@ -26,6 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    model_file(args.model, "MODEL", "world model")
+    drives(args.data, "DATA")
     import torch
 
     from umad_common.models.world_model import load_world_model

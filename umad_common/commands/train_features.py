@@ -6,6 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from umad_common.commands.checks import training_inputs
 from umad_common.commands.common import add_device_argument, resolve_device_or_exit
 
 log = logging.getLogger("umad.train.features")
@@ -32,14 +33,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    training_inputs(args.data, args.out, ".safetensors")
     import torch
 
     from umad_common import recorded_path
     from umad_common.models.feature_net import save_feature_net
     from umad_common.training.train_features import FeatureTrainingConfig, load_normal_rgb, train_feature_net
 
-    if args.out.suffix != ".safetensors":
-        raise SystemExit(f"--out {args.out}: expected a .safetensors file name")
     if args.epochs < 1 or args.frames < 1 or args.batch_size < 2 or args.holdout < 0:
         raise SystemExit("--epochs and --frames must be >= 1, --batch-size >= 2, --holdout >= 0")
     torch.set_num_threads(args.threads)

@@ -6,6 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from umad_common.commands.checks import training_inputs
 from umad_common.commands.common import add_device_argument, resolve_device_or_exit
 
 log = logging.getLogger("umad.train.mnad")
@@ -35,13 +36,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    training_inputs(args.data, args.out, ".safetensors")
     import torch
 
     from umad_common.models.mnad import MnadConfig, save_mnad
     from umad_common.training.train_mnad import MnadTrainingConfig, load_normal_frames, train_mnad
 
-    if args.out.suffix != ".safetensors":
-        raise SystemExit(f"--out {args.out}: expected a .safetensors file name")
     if args.epochs < 1 or args.frames < 2 or args.batch_size < 2 or (args.minutes is not None and args.minutes <= 0):
         raise SystemExit("--epochs must be >= 1, --minutes > 0, --frames and --batch-size >= 2")
     torch.set_num_threads(args.threads)

@@ -14,6 +14,7 @@ import os
 import shlex
 from pathlib import Path
 
+from umad_common.commands.checks import training_inputs
 from umad_common.commands.common import add_device_argument, resolve_device_or_exit
 
 log = logging.getLogger("umad.train.segmenter")
@@ -67,6 +68,7 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    training_inputs(args.data, args.out, ".safetensors")
     # passive OpenMP waiting (see train_world_model): must be set before torch loads
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import torch
@@ -75,8 +77,6 @@ def run(args: argparse.Namespace) -> int:
     from umad_common.training.train_features import load_normal_rgb
     from umad_common.training.train_segmenter import train_segment_net
 
-    if args.out.suffix != ".safetensors":
-        raise SystemExit(f"--out {args.out}: expected a .safetensors file name")
     net_cfg, train_cfg = configs_of(args)
     torch.set_num_threads(args.threads)
     device = resolve_device_or_exit(args.device)

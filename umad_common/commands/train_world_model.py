@@ -17,6 +17,7 @@ import shlex
 from dataclasses import asdict
 from pathlib import Path
 
+from umad_common.commands.checks import existing_file, training_inputs
 from umad_common.commands.common import add_device_argument, resolve_device_or_exit
 
 DEFAULT_EPOCHS = 35
@@ -110,6 +111,9 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    training_inputs(args.data, args.out, "")
+    if args.config:
+        existing_file(args.config, "--config", "a saved MODEL.json (or any JSON with 'config' and 'train_config')")
     # On a shared machine, OpenMP threads that spin while waiting make 2 threads slower than 1;
     # passive waiting must be chosen before torch loads its OpenMP runtime.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

@@ -25,6 +25,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from umad_common import DEFAULT_GRAPH, LIVE_GRAPH, resolve_path
 from umad_common.dataflow.assignments import GraphError, merge_params
 from umad_common.dataflow.bus import DEFAULT_HUB, TlsConfig
 from umad_common.dataflow.certificates import operator_identity
@@ -122,8 +123,7 @@ class Graph:
 
     @property
     def base_dir(self) -> Path:
-        here = self.path.parent if self.path else Path.cwd()
-        return here / self.spec.base_dir if self.spec.base_dir else here
+        return graph_base_dir(self.path, self.spec.base_dir)
 
     def tls_config(
         self, identity: str | None = None, cert: str | None = None, key: str | None = None
@@ -194,6 +194,26 @@ class Graph:
         return validate_graph(data, self.path)
 
 
+def graph_base_dir(path: Path | None, base_dir: str | None) -> Path:
+    """The folder a graph's relative paths resolve against: its `base_dir` (relative to the graph
+    file's folder); else the working folder for a graph shipped with the package (the default and
+    the live graph: `data/...` means the user's data, wherever the package is installed); else the
+    graph file's folder. Shipped files (`umad_common/assets/...`) resolve from any of them."""
+    here = path.parent if path else Path.cwd()
+    if base_dir:
+        return here / base_dir
+    if path is not None and is_builtin_graph(path):
+        return Path.cwd()
+    return here
+
+
+def is_builtin_graph(path: str | Path) -> bool:
+    """Whether `path` is one of the graphs the package ships (in a checkout, also the top-level
+    graph.yaml, which the package's default graph links to)."""
+    real = Path(path).resolve()
+    return any(real == graph.resolve() for graph in (DEFAULT_GRAPH, LIVE_GRAPH))
+
+
 def load_graph(path: str | Path) -> Graph:
     """Read and validate a graph file. Custom operators (`uses:`) are imported from PYTHONPATH and
     from the graph file's folder."""
@@ -228,7 +248,9 @@ def _read_yaml(path: Path) -> Any:
     try:
         return yaml.safe_load(path.read_text())
     except FileNotFoundError:
-        raise GraphError([f"{path}: graph file not found"]) from None
+        raise GraphError(
+            [f"{path}: graph file not found; expected a graph YAML file (see `umad graph check --help`)"]
+        ) from None
     except yaml.YAMLError as exc:
         raise GraphError([f"{path}: not valid YAML ({exc})"]) from None
 
@@ -359,6 +381,20 @@ def missing_local_files(graph: Graph) -> list[str]:
             own = graph.tls_config(operator_identity(op.id))
             if not Path(own.client_cert).is_file():
                 problems.append(f"operator {op.id!r}: certificate {own.client_cert} not found (tls.certs)")
+    return problems
+
+
+def missing_input_files(graph: Graph) -> list[str]:
+    """The files and folders the operators read at start (`Operator.input_paths`) that do not exist,
+    each resolved as the operator will resolve it. Checked by the verbs that run the whole graph here
+    (`umad launch`, `umad eval`), not by `umad graph check`: the data is the run's, not the graph's."""
+    problems = []
+    for op in graph.spec.operators:
+        cls = graph.classes[op.id]
+        for param, path in cls.input_paths(cls.validate_params(op.params)).items():
+            resolved = resolve_path(path, graph.base_dir)
+            if not resolved.exists():
+                problems.append(f"operator {op.id!r}: {param} {path}: not found at {resolved}")
     return problems
 
 

@@ -28,7 +28,7 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from umad_common import REPOSITORY
+from umad_common import resolve_path
 from umad_common.dataflow.messages import Message
 from umad_common.dataflow.pacing import SourceParams
 from umad_common.dataflow.plugins import import_class
@@ -118,15 +118,10 @@ class Context:
     log: logging.Logger = field(default_factory=lambda: logging.getLogger("umad.op"))
 
     def resolve(self, path: str | Path) -> Path:
-        """A path from the parameters: absolute, or relative to the graph file's folder; failing
-        that, relative to the installed package root, so the shipped `umad_common/assets/...`
-        defaults work for a graph kept in any folder."""
-        p = Path(path).expanduser()
-        if p.is_absolute():
-            return p
-        local = self.base_dir / p
-        shipped = REPOSITORY / p
-        return shipped if not local.exists() and shipped.exists() else local
+        """A path from the parameters: absolute, or relative to the graph's `base_dir`; failing
+        that, the shipped file it names, so the `umad_common/assets/...` defaults work for a graph
+        kept in any folder (`umad_common.resolve_path`)."""
+        return resolve_path(path, self.base_dir)
 
 
 class Operator:
@@ -162,6 +157,12 @@ class Operator:
         if isinstance(params, cls.Params):
             return params
         return cls.Params.model_validate(dict(params))
+
+    @classmethod
+    def input_paths(cls, params: BaseModel) -> dict[str, str]:
+        """The files or folders these (valid) parameters name that the operator reads at start,
+        `{parameter: path as written}`: a launcher checks they exist before it starts anything."""
+        return {}
 
     @classmethod
     def wiring_problems(cls, params: BaseModel, wired: set[str]) -> list[str]:
@@ -233,15 +234,15 @@ class Source(Operator):
 
 
 BUILTIN_KINDS = {
-    "replayer": "operators.replayer:Replayer",
-    "world_model": "operators.world_model:WorldModelPredictor",
-    "difference": "operators.difference:Difference",
-    "fusion": "operators.fusion:Fusion",
-    "segmenter": "operators.segmenter:Segmenter",
-    "mask_refiner": "operators.mask_refiner:MaskRefiner",
-    "frame_result": "operators.frame_result:FrameResult",
-    "mnad": "operators.mnad:MnadPredictor",
-    "accumulator": "operators.accumulator:Accumulator",
+    "replayer": "umad_operators.replayer:Replayer",
+    "world_model": "umad_operators.world_model:WorldModelPredictor",
+    "difference": "umad_operators.difference:Difference",
+    "fusion": "umad_operators.fusion:Fusion",
+    "segmenter": "umad_operators.segmenter:Segmenter",
+    "mask_refiner": "umad_operators.mask_refiner:MaskRefiner",
+    "frame_result": "umad_operators.frame_result:FrameResult",
+    "mnad": "umad_operators.mnad:MnadPredictor",
+    "accumulator": "umad_operators.accumulator:Accumulator",
 }
 
 

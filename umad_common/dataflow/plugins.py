@@ -4,7 +4,32 @@ ones, and `package.module:ClassName` for a user's own."""
 from __future__ import annotations
 
 import importlib
+import logging
+import re
 from collections.abc import Mapping
+
+# The repository's folders operators/ and replay/ install under UMAD's own import names; an import
+# path with the old name still loads, with a one-line notice naming the new one.
+RENAMED_PACKAGES = {"operators": "umad_operators", "replay": "umad_replay"}
+
+log = logging.getLogger("umad.plugins")
+_noticed: set[str] = set()  # old import paths this process has named in a notice (a graph is validated often)
+
+
+def current_import_path(path: str, what: str) -> str:
+    """`path` with a renamed package's old name replaced by its new one, and a one-line notice saying
+    so (once per path and process)."""
+    package = re.split(r"[.:]", path, maxsplit=1)[0]
+    if package not in RENAMED_PACKAGES:
+        return path
+    renamed = RENAMED_PACKAGES[package] + path[len(package) :]
+    if path in _noticed:
+        return renamed
+    _noticed.add(path)
+    log.warning(
+        "%s %r: deprecated, package %r is now %r; use %r", what, path, package, RENAMED_PACKAGES[package], renamed
+    )
+    return renamed
 
 
 def import_class(path: str, base: type, what: str, error: type[Exception]) -> type:
@@ -16,7 +41,7 @@ def import_class(path: str, base: type, what: str, error: type[Exception]) -> ty
         what: the kind in error messages ("operator", "metric", "segmenter method").
         error: the exception raised, with a message naming `path` and what was expected.
     """
-    module_name, _, attr = path.partition(":")
+    module_name, _, attr = current_import_path(path, what).partition(":")
     if not attr:
         raise error(f"{what} {path!r}: expected an import path `package.module:ClassName`")
     try:

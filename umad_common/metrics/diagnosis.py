@@ -127,7 +127,7 @@ def frame_relative_scores(scores: np.ndarray, labels: np.ndarray) -> dict[str, f
 class ScoreSinceVisible:
     """Per scenario: the anomaly's frame-relative score against frames since it first became visible.
 
-    Frames of one scenario must come in ascending seq (as `replay.frames` yields them); scenarios may
+    Frames of one scenario must come in ascending seq (as `umad_replay.frames` yields them); scenarios may
     interleave. Frames before the first visible one, and later frames without anomaly pixels, are
     not counted. Each counted frame weighs the same in its bin's means.
     """

@@ -1,7 +1,7 @@
 """segment-anything's automatic mask generator on a local checkpoint file (never downloaded).
 
 The package needs torchvision and so torch 2.14.1: it runs in its own environment
-(`.ci/sam_env.sh`, graph field `python: .venv-sam/bin/python`). Its masks overlap.
+(built by the shipped `umad_common/scripts/sam_env.sh`; graph field `python: .venv-sam/bin/python`). Its masks overlap.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from umad_common import SAM_ENV_SCRIPT
 from umad_common.dataflow import Context, Frame
 from umad_common.models.device import DeviceName, device_field, resolve_device
 from umad_common.segmentation.base import SegmenterMethod
@@ -54,7 +55,7 @@ class Sam(SegmenterMethod):
         except ImportError as exc:
             raise ImportError(
                 f"segmenter method 'sam' needs the segment-anything package (and torchvision) but importing it "
-                f"failed ({exc}); build its environment with `.ci/sam_env.sh` and run this operator there with "
+                f"failed ({exc}); build its environment with `bash {SAM_ENV_SCRIPT} .venv-sam` and run this operator there with "
                 "the graph field `python: .venv-sam/bin/python`"
             ) from exc
         device = resolve_device(p.device)

@@ -28,7 +28,7 @@ from umad_common.viz.pages import Cell, Page, Section, Table, render_table_markd
 from umad_common.viz.plots import plot_curves, plot_overlay_grid
 
 if TYPE_CHECKING:
-    from replay.sweep import SweepResult
+    from umad_replay.sweep import SweepResult
 
 METRIC_COLUMNS = {  # a weight row's metric -> its column: the paper's five, then ours
     "abs": "ABS",
