@@ -15,7 +15,8 @@ from pathlib import Path
 
 import yaml
 
-from umad_common.commands.common import add_graph_argument, load_graph_or_exit
+from umad_common.commands.checks import checked_graph
+from umad_common.commands.common import add_graph_argument
 from umad_common.dataflow.certificates import CONTROL, HUB, OBSERVER, VALID_DAYS, make_certificates, operator_identity
 
 
@@ -33,9 +34,7 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    graph = load_graph_or_exit(args.graph)
-    if graph is None:
-        return 1
+    graph = checked_graph(args.graph)
     out = Path(args.out)
     hub_host = graph.spec.hub.partition("/")[2].rpartition(":")[0].strip("[]")
     hub_names = ["localhost", "127.0.0.1", *([hub_host] if hub_host not in ("0.0.0.0", "::", "") else []), *args.host]
