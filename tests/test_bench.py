@@ -23,7 +23,7 @@ def test_differences_and_predictors_benches_measure_every_metric_and_both_models
     out = tmp_path / "bench.json"
     assert umad_main(["bench", "differences", "--frames", "2", "--out", str(out)]) == 0
     differences = json.loads(out.read_text())["differences"]
-    assert set(differences["fps"]) == {"abs", "mse", "ssim", "ssim_shift", "perceptual", "temporal"}
+    assert set(differences["fps"]) == {"abs", "mse", "ssim", "ssim_shift", "perceptual", "temporal", "lidar"}
     assert differences["fps_ratio_to_abs"]["abs"] == 1.0
     assert all(v > 0 for v in differences["fps"].values())
 
@@ -69,5 +69,5 @@ def test_record_bench_runs_the_default_graph_with_and_without_a_recording(hub_en
     result = bench_record(frames=3, pairs=1, hub=hub_endpoint)
     assert result["fps_plain"] > 0 and result["fps_recorded"] > 0
     assert result["fps_ratio_recorded"] == pytest.approx(result["fps_recorded"] / result["fps_plain"])
-    assert result["complete"] and result["log_messages"] == 19 * 4  # 19 channels, 3 frames and the end marker
+    assert result["complete"] and result["log_messages"] == 20 * 4  # 20 channels, 3 frames and the end marker
     assert result["log_mib_per_frame"] > 0

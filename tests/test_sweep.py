@@ -591,10 +591,10 @@ def test_paper_layout_table(result, tmp_path):
     assert header.index("gt mean AP") < header.index("felzenszwalb mean AP") < header.index("felzenszwalb max AP")
     assert header.index("felzenszwalb max AP") < header.index("no mask AP") < header.index("felzenszwalb single AP")
     rows = [line for line in lines[2:] if line.startswith("| ")]
-    assert len(rows) == 56 and rows[0].startswith("| 1 |  |  |  |  |  | paper |")
-    assert all("| extra |" in row for row in rows[15:28]) and rows[17].startswith("|  |  |  |  |  | 1 | extra |")
+    assert len(rows) == 56 and rows[0].startswith("| 1 |  |  |  |  |  |  | paper |")  # the lidar rows: no lidar map
+    assert all("| extra |" in row for row in rows[15:28]) and rows[17].startswith("|  |  |  |  |  | 1 |  | extra |")
     assert all("| extra, robust |" in row for row in rows[28:]) and rows[28].startswith(
-        "| 1 |  |  |  |  |  | extra, robust |"
+        "| 1 |  |  |  |  |  |  | extra, robust |"
     )
 
 

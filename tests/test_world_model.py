@@ -594,15 +594,23 @@ def test_evaluation_predictions_are_the_prior_rolled_from_k_steps_back(tiny_benc
                 assert np.allclose(predicted[t - k], expected, atol=1e-5), (k, t)
 
 
-def test_test_world_model_command_names_data_it_cannot_score(tmp_path, weights):
+def test_test_world_model_command_names_data_it_cannot_score(tmp_path):
     import argparse
 
     from umad_common.commands import test_world_model
+    from umad_common.commands.checks import InputError
 
+    write_drive(tmp_path / "data" / "normal" / "Scenario_n0", frames=4, seed=0)
+    save_world_model(tiny_model(), tmp_path / "wm", {"training_drives": ["Scenario_n0"]})
     args = argparse.Namespace(
-        model=weights, data=tmp_path, horizon=3, normal_limit=None, anomalous_limit=None, threads=1
-    )
+        model=tmp_path / "wm.safetensors", data=tmp_path / "data", horizon=3, normal_limit=None,
+        anomalous_limit=None, threads=1,
+    )  # fmt: skip
     with pytest.raises(SystemExit, match="no normal drive the model did not train on"):
+        test_world_model.run(args)
+    args.data = tmp_path / "empty"
+    args.data.mkdir()
+    with pytest.raises(InputError, match="holds no drive"):
         test_world_model.run(args)
 
 
