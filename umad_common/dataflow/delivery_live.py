@@ -29,10 +29,10 @@ class LiveDelivery:
         self.next_seq: dict[str, int] = defaultdict(int)  # run -> the seq after the newest frame finished
 
     def accepts(self, msg: Message) -> bool:
-        """Whether this replica joins `msg`: its frame's seq falls to this replica, and the frame was
-        not already finished or passed over (a late input)."""
+        """Whether this replica joins `msg`: its frame falls to this replica (its run, for an ordered
+        operator; its seq otherwise), and it was not already finished or passed over (a late input)."""
         rt = self.rt
-        if not rt.owns_seq(msg.seq):
+        if not (rt.owns_run(msg.run, msg.seq) if rt.cls.ordered else rt.owns_seq(msg.seq)):
             return False
         return not (msg.seq < self.next_seq[msg.run] and (msg.run, msg.seq) not in rt.joiner.pending)
 

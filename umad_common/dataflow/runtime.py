@@ -54,7 +54,7 @@ from umad_common.dataflow.bus import Keys, answer
 from umad_common.dataflow.control import apply_command
 from umad_common.dataflow.delivery import FrameJoiner, Membership, Stats
 from umad_common.dataflow.delivery_live import LiveDelivery
-from umad_common.dataflow.delivery_ordered import OrderedDelivery
+from umad_common.dataflow.delivery_ordered import OrderedDelivery, RunOwners
 from umad_common.dataflow.delivery_replay import ReplayDelivery
 from umad_common.dataflow.frame_processing import FrameProcessor
 from umad_common.dataflow.graph import Graph
@@ -168,6 +168,7 @@ class OperatorRuntime:
         self.frame_period_s = self._camera_period_s()
         self.params_meta = self.operator.params.model_dump(mode="json")  # recorded in every output
         self._route_cache: tuple[dict[str, set[str]], list[str]] | None = None  # expected producers, replicas
+        self.run_owners = RunOwners(self.replica_id)  # ordered operators: which replica owns each run
         self.processor = FrameProcessor(self)
         self.path = self._delivery_path()
 
@@ -234,6 +235,17 @@ class OperatorRuntime:
             return True
         return replicas[seq % len(replicas)] == self.replica_id
 
+    def owns_run(self, run: str, seq: int) -> bool:
+        """Ordered operators: whether `run` belongs to this replica (`RunOwners`), over the replicas
+        whose liveliness token is there now (a lost one is not waited for: its runs move on)."""
+        return self.run_owners.owner(run, seq, set(self.members.live.get(self.op_id, ()))) == self.replica_id
+
+    def _replica_gone(self, replica: str) -> None:
+        """A sibling replica's token went: the runs it owned that now fall to this one are taken over."""
+        taken = self.run_owners.replica_gone(replica, set(self.members.live.get(self.op_id, ())))
+        if taken and isinstance(self.path, OrderedDelivery):
+            self.path.take_over(taken)
+
     def _produces(self, op: str, source: str) -> bool:
         """Whether operator `op` publishes on wiring pattern `source`; an operator this graph file
         does not know (started from another file) is matched by its id alone."""
@@ -271,6 +283,8 @@ class OperatorRuntime:
                     self.members.put(op, rep)
                 else:
                     self.members.delete(op, rep)
+                    if op == self.op_id and rep != self.replica_id and self.cls.ordered:
+                        self._replica_gone(rep)
                 changed = True
             elif kind == "left":
                 try:
