@@ -8,20 +8,27 @@ side by side (`runs_in_flight`); the values a fault-free run gives are known in 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
+from types import SimpleNamespace
 
+import msgpack
 import pytest
 import yaml
 
 from tests.conftest import free_port, run_umad, start_umad
 from umad_common import DEFAULT_GRAPH
+from umad_common.dataflow.delivery import Membership, Stats
 from umad_common.dataflow.delivery_ordered import RunOwners, rendezvous_score
 from umad_common.dataflow.graph import validate_graph
+from umad_common.dataflow.messages import Message, decode, encode
+from umad_common.dataflow.source_driver import SourceDriver
 
 RUNS = [f"run{r}" for r in range(4)]
 
@@ -100,6 +107,82 @@ def test_runs_side_by_side_need_lossless_pacing():
     }
     with pytest.raises(ValueError, match="runs_in_flight 2 needs pacing lossless"):
         validate_graph(data)
+
+
+class AckingHost:
+    """What the source driver needs of a runtime, without Zenoh: every published frame is acked by
+    the graph's one sink at once, and the publishing order is kept."""
+
+    def __init__(self, graph):
+        self.graph = graph
+        self.op_id = "source"
+        self.log = logging.getLogger("test.source")
+        self.stats = Stats()
+        self.shutdown = threading.Event()
+        self.members = Membership()
+        for op in graph.spec.operators:
+            self.members.put(op.id, "r0")
+        self.resend_requests: list[dict] = []
+        self.published: list[tuple[str, int, bool]] = []  # (run, seq, end-of-run marker)
+        self.on_ack = None
+
+    def subscribe(self, key, callback):
+        self.on_ack = callback
+
+    def handle_service(self):
+        return False
+
+    def publish_stats(self, force=False):
+        pass
+
+    def count_cpu_from_now(self):
+        pass
+
+    def encode_outputs(self, run, seq, stamp_ns, outputs, extra_meta):
+        return [
+            (port, encode(Message(run, seq, stamp_ns, "source", extra_meta, out.arrays)))
+            for port, out in outputs.items()
+        ]
+
+    def markers(self, run, seq, stamp_ns, meta):
+        return [("value", encode(Message(run, seq, stamp_ns, "source", meta)))]
+
+    def publish(self, payloads, count=True):
+        msg = decode(payloads[0][1])
+        self.published.append((msg.run, msg.seq, bool(msg.meta.get("eos"))))
+        ack = msgpack.packb({"run": msg.run, "seq": msg.seq, "op": "log"})
+        self.on_ack(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: ack)))
+
+
+def test_a_source_sends_runs_side_by_side_and_ends_each_once_its_frames_are_acked():
+    graph = validate_graph(
+        {
+            "name": "sbs",
+            "operators": [
+                {
+                    "id": "source",
+                    "uses": "tests.toy_ops:RewindableCounterSource",
+                    "params": {"runs": 3, "frames": 5, "window": 2, "runs_in_flight": 2},
+                },
+                {"id": "log", "uses": "tests.toy_ops:Logger", "inputs": {"x": "source/value"}},
+            ],
+        }
+    )
+    host = AckingHost(graph)
+    SourceDriver(host, graph.classes["source"](graph.op("source").params), graph).run()
+    frames = [(run, seq) for run, seq, eos in host.published if not eos]
+    assert sorted(frames) == [(f"run{r}", s) for r in range(3) for s in range(5)]
+    assert frames.index(("run1", 0)) < frames.index(("run0", 4))  # the first two runs' frames take turns
+    open_runs, most_open = set(), 0
+    for run, seq, eos in host.published:
+        if eos:
+            assert seq == 5 and run in open_runs  # after every frame of its run
+            open_runs.discard(run)
+        else:
+            open_runs.add(run)
+            most_open = max(most_open, len(open_runs))
+    assert not open_runs and most_open == 2
+    assert [run for run, _, eos in host.published if eos] == ["run0", "run1", "run2"]
 
 
 # -- end to end ------------------------------------------------------------------------------------

@@ -9,6 +9,7 @@ import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
+from functools import partial
 from typing import Any, Protocol
 
 import msgpack
@@ -154,10 +155,10 @@ class SourceDriver:
         closing: dict[str, tuple[int, int]] = {}  # run -> (frames, last stamp): every frame sent, its marker due
         sent = 0
         while not host.shutdown.is_set():
+            self._close_acked_runs(closing)
             while waiting and len(sending) + len(closing) < self.pacing.runs_in_flight:
                 run, length = waiting.pop()
                 sending[run] = [0, length, 0]
-            self._close_acked_runs(closing)
             if not sending and not closing:
                 break
             run = self._next_run_with_room(sending)
@@ -165,11 +166,8 @@ class SourceDriver:
                 self._service(ACK_WAIT_S)
                 continue
             seq, length, _ = sending[run]
-            host.count_cpu_from_now()
-            cpu_start = time.process_time()
-            sf = self.source.frame_or_error(run, seq)
-            host.stats.cpu_s += time.process_time() - cpu_start
-            host.stats.computed += 1
+            sf = self._read(partial(self.source.frame_or_error, run, seq))
+            assert sf is not None, "frame_or_error returns a frame or an error frame"
             self._send((run, seq), self._payloads(sf))
             sent += 1
             del sending[run]
@@ -229,9 +227,13 @@ class SourceDriver:
 
     def _next_frame(self, frames: Iterator[SourceFrame]) -> SourceFrame | None:
         """The source's next frame, its reading counted as the source's own work (`cpu_ms`)."""
+        return self._read(lambda: next(frames, None))
+
+    def _read(self, read: Callable[[], SourceFrame | None]) -> SourceFrame | None:
+        """A frame `read` returns, its reading counted as the source's own work (`cpu_ms`)."""
         self.host.count_cpu_from_now()
         cpu_start = time.process_time()
-        sf = next(frames, None)
+        sf = read()
         if sf is not None:
             self.host.stats.cpu_s += time.process_time() - cpu_start
             self.host.stats.computed += 1
