@@ -80,6 +80,9 @@ class Replayer(Source):
     def total_frames(self) -> int | None:
         return None if self.log_path is not None else sum(self.run_length(run) for run in self.scenarios)
 
+    def runs(self) -> dict[str, int] | None:
+        return None if self.log_path is not None else {run: self.run_length(run) for run in self.scenarios}
+
     def frames(self) -> Iterator[SourceFrame]:
         if self.log_path is not None:  # a recorded run: its payloads again, byte for byte
             yield from recorded_frames(self.log_path, self.context.graph_name, self.context.op_id, self.outputs)

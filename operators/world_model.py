@@ -30,10 +30,15 @@ last action held), and the rollouts move on too, so x̂_{t|t-i} still predicts f
 back; no rollout starts at a missed step, so its row stays `pred_valid` 0. A longer gap restarts the
 run's state as at seq 0: the prior rolled that far without an observation is no better than a blank
 state, and bridging costs a transition per missed step. In lossless mode there are no gaps.
+
+Each run has its own state (`RunState`), kept from its first frame to its end-of-run marker: a
+source that sends runs side by side (`runs_in_flight`) interleaves their frames here, and with
+`replicas: k` each run is one replica's.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -81,6 +86,18 @@ class WorldModelParams(BaseModel):
     )
 
 
+@dataclass
+class RunState:
+    """Where the model stands along one run."""
+
+    state: State  # the posterior of the last model step (the initial state before the first)
+    pending_action: torch.Tensor  # (1, 2): the action of the last model step's frame
+    rollouts: list[tuple[State, torch.Tensor] | None]  # prior rollouts advanced to the last step and the
+    #   speed of the frame each started from; [i-1] started i steps before it (None: at a missed step)
+    steps: int = 0  # model steps taken
+    last_seq: int = 0  # the last frame processed
+
+
 class WorldModelPredictor(Operator):
     """Runs the world model along each run and publishes target, recon, preds and pred_valid."""
 
@@ -118,24 +135,23 @@ class WorldModelPredictor(Operator):
             )
         self.assumed_rig_runs: set[str] = set()
         self.trained_frame_step = int(self.config.frame_step)
-        self.run: str | None = None
-        self.last_seq = 0  # the last frame of `run` processed
-        self.reset()
+        self.runs: dict[str, RunState] = {}  # run -> its state, from its first frame to its end
 
-    def reset(self) -> None:
-        """Forget the previous run: initial state, no rollouts, no pending action."""
-        self.state: State = self.model.initial_state(1)
-        self.rollouts: list[tuple[State, torch.Tensor] | None] = []  # prior rollouts advanced to the last step
-        #   and the speed of the frame each started from; [i-1] started i steps before it (None: at a missed step)
-        self.pending_action = self.torch.zeros(1, 2, device=self.device)
-        self.steps = 0
+    def fresh_run(self) -> RunState:
+        """A run's start: initial state, no rollouts, no pending action."""
+        return RunState(self.model.initial_state(1), self.torch.zeros(1, 2, device=self.device), [])
+
+    def end_run(self, run: str) -> dict[str, Output]:
+        self.runs.pop(run, None)
+        return {}
 
     def update_params(self, params: BaseModel) -> None:
         horizon_changed = params.horizon != self.params.horizon
         super().update_params(params)
         self.torch.set_num_threads(params.threads)
         if horizon_changed:
-            self.rollouts = self.rollouts[: params.horizon]
+            for run in self.runs.values():
+                run.rollouts = run.rollouts[: params.horizon]
 
     def observation(self, frame: Frame) -> tuple[Observation, np.ndarray, np.ndarray]:
         """Model inputs (B = T = 1) on the model's device, the target (h, w, 3) float32 and the action
@@ -186,32 +202,34 @@ class WorldModelPredictor(Operator):
             "lidar_expected": np.ascontiguousarray(expected[returns.row, returns.col], np.float32),
         }
 
-    def missed_steps(self, seq: int) -> int:
-        """Model steps (seqs on the stride) strictly between the last frame processed and `seq`: 0
-        unless the runtime passed frames over (live mode)."""
+    def missed_steps(self, run: RunState, seq: int) -> int:
+        """Model steps (seqs on the stride) strictly between the run's last frame processed and
+        `seq`: 0 unless the runtime passed frames over (live mode)."""
         stride = self.params.stride
-        return max(0, (seq - 1) // stride - self.last_seq // stride)
+        return max(0, (seq - 1) // stride - run.last_seq // stride)
 
-    def bridge(self, missed: int) -> None:
+    def bridge(self, run: RunState, missed: int) -> None:
         """Carry the state over `missed` model steps without their frames: at each, the state moves
         on by the transition and the prior's mean with the last action held, and the rollouts one
         prior step, a missed step starting none; those that would then be older than `horizon`
         steps at the next frame are dropped unadvanced."""
         State, n = self.wm.State, self.params.horizon
         for _ in range(missed):
-            hidden = self.model.transition(self.state, self.pending_action, move=False)
-            self.state = State(hidden, self.model.prior(hidden)[0])
-            self.rollouts = [None, *self.advance(self.rollouts[: n - 1])]
+            hidden = self.model.transition(run.state, run.pending_action, move=False)
+            run.state = State(hidden, self.model.prior(hidden)[0])
+            run.rollouts = [None, *self.advance(run.rollouts[: n - 1], run.pending_action)]
 
-    def advance(self, rollouts: list[tuple[State, torch.Tensor] | None]) -> list[tuple[State, torch.Tensor] | None]:
-        """Each rollout one prior step on with the pending action, moving with the scene."""
+    def advance(
+        self, rollouts: list[tuple[State, torch.Tensor] | None], action: torch.Tensor
+    ) -> list[tuple[State, torch.Tensor] | None]:
+        """Each rollout one prior step on with the pending `action`, moving with the scene."""
         State, advanced = self.wm.State, []
         for rollout in rollouts:
             if rollout is None:
                 advanced.append(None)
                 continue
             origin, speed = rollout
-            h_pred = self.model.transition(origin, self.pending_action, move=True, speed=speed)
+            h_pred = self.model.transition(origin, action, move=True, speed=speed)
             advanced.append((State(h_pred, self.model.prior(h_pred)[0]), speed))
         return advanced
 
@@ -224,16 +242,16 @@ class WorldModelPredictor(Operator):
         """`process` without gradients: one frame through the model."""
         torch, State = self.torch, self.wm.State
         gap = 0
-        if frame.run != self.run or frame.seq == 0:
-            self.run = frame.run
-            self.reset()
+        run = self.runs.get(frame.run)
+        if run is None or frame.seq == 0:
+            run = self.runs[frame.run] = self.fresh_run()
         else:
-            gap = self.missed_steps(frame.seq)
+            gap = self.missed_steps(run, frame.seq)
             if gap > self.params.max_gap_steps:
-                self.reset()
+                run = self.runs[frame.run] = self.fresh_run()
             else:
-                self.bridge(gap)
-        self.last_seq = frame.seq
+                self.bridge(run, gap)
+        run.last_seq = frame.seq
         obs, target, action = self.observation(frame)
         n = self.params.horizon
         h, w = self.config.image_height, self.config.image_width
@@ -242,11 +260,11 @@ class WorldModelPredictor(Operator):
         valid = np.zeros(n, np.uint8)
         model_step = frame.seq % self.params.stride == 0
         embed = self.model.embed(obs)[:, 0]
-        hidden = self.model.transition(self.state, self.pending_action, move=False)
+        hidden = self.model.transition(run.state, run.pending_action, move=False)
         posterior = State(hidden, self.model.posterior(hidden, embed)[0])
         scored = not frame.inputs["camera"].meta.get("skip")
         if model_step:
-            advanced = self.advance(self.rollouts)
+            advanced = self.advance(run.rollouts, run.pending_action)
             if scored:
                 rows = [i for i, rollout in enumerate(advanced) if rollout is not None]
                 batch = [posterior, *(advanced[i][0] for i in rows)]
@@ -255,16 +273,16 @@ class WorldModelPredictor(Operator):
                 recon = images[0]
                 preds[rows] = images[1:]
                 valid[rows] = 1
-            self.state = posterior
-            self.rollouts = [(posterior, obs.speed.reshape(1)), *advanced][:n]
-            self.pending_action = torch.from_numpy(action)[None].to(self.device)
-            self.steps += 1
+            run.state = posterior
+            run.rollouts = [(posterior, obs.speed.reshape(1)), *advanced][:n]
+            run.pending_action = torch.from_numpy(action)[None].to(self.device)
+            run.steps += 1
         elif scored:
             recon = self.model.decode(posterior)[0].float().permute(1, 2, 0).cpu().numpy()
         meta = {
             "model": self.model_path.name,
             "model_step": bool(model_step),
-            "steps": self.steps,
+            "steps": run.steps,
             "trained_frame_step": self.trained_frame_step,
         }
         if gap:

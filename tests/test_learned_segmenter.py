@@ -151,6 +151,7 @@ def test_switching_to_a_method_whose_input_is_not_wired_is_refused_with_the_reas
     import zenoh
 
     from umad_common.dataflow.bus import zenoh_config
+    from umad_common.dataflow.control import apply_command
     from umad_common.dataflow.graph import validate_graph
     from umad_common.dataflow.runtime import OperatorRuntime
 
@@ -163,8 +164,8 @@ def test_switching_to_a_method_whose_input_is_not_wired_is_refused_with_the_reas
     }
     with zenoh.open(zenoh_config("peer")) as session:  # no hub, no peers
         rt = OperatorRuntime(validate_graph(graph), "segment", 0, session, threading.Event())
-        outcome = rt._apply_control(json.dumps({"set": {"method": "geometry"}}).encode())
+        outcome = apply_command(rt, json.dumps({"set": {"method": "geometry"}}).encode())
         assert outcome["status"] == "refused"
         assert "method 'geometry' needs input 'lidar' (e.g. replayer/lidar), which is not wired" in outcome["reason"]
         assert rt.operator.params.method == "slic" and rt.stats.errors == 1
-        assert rt._apply_control(json.dumps({"set": {"method": "felzenszwalb"}}).encode()) == {"status": "applied"}
+        assert apply_command(rt, json.dumps({"set": {"method": "felzenszwalb"}}).encode()) == {"status": "applied"}

@@ -81,7 +81,7 @@ def feed(rt: OperatorRuntime, messages: list[Received], until) -> None:
 
 
 def test_live_join_uses_late_frames_passes_over_lost_ones_and_catches_up(join):
-    assert join.live and join._frame_period_s == pytest.approx(0.1) and join._deadline_s() == 0.5
+    assert join.live and join.frame_period_s == pytest.approx(0.1) and join.deadline_s() == 0.5
     feed(join, [a(0), a(1), b(1)], lambda: processed(join) == [1])  # 0's second input is late
     feed(join, [b(0)], lambda: processed(join) == [1, 0])  # and still used when it comes
     assert join.stats.superseded == 0
@@ -101,9 +101,9 @@ def test_live_join_uses_late_frames_passes_over_lost_ones_and_catches_up(join):
 
 
 def test_an_operator_slower_than_the_camera_takes_the_newest_of_its_backlog(join):
-    join._compute_s = 0.25  # as if each frame took 2.5 camera periods: more than the catch-up budget (2)
+    join.processor.compute_s = 0.25  # as if each frame took 2.5 camera periods: more than the catch-up budget (2)
     feed(join, [a(0), b(0), a(1), b(1), a(2), b(2)], lambda: processed(join) == [2])
     assert join.stats.superseded == 2
-    join._compute_s = 0.08  # two frames fit in the catch-up budget
+    join.processor.compute_s = 0.08  # two frames fit in the catch-up budget
     feed(join, [a(3), b(3), a(4), b(4), a(5), b(5)], lambda: processed(join)[-1] == 5)
     assert processed(join) == [2, 4, 5] and join.stats.superseded == 3

@@ -15,7 +15,7 @@ from umad_common import DEFAULT_GRAPH
 from umad_common.benchmarks.pipeline import joined_inputs, stage_times, topological_order, work_with_every_core_busy
 from umad_common.dataflow.delivery import FrameJoiner, Stats
 from umad_common.dataflow.graph import load_graph
-from umad_common.dataflow.launcher import summary_table
+from umad_common.dataflow.launcher_report import summary_table
 from umad_common.dataflow.messages import Message
 
 
@@ -79,7 +79,7 @@ def test_a_replica_process_runs_numpy_blas_on_one_thread():
     """BLAS threads spin after each call: a replica keeps one (run_operator calls one_blas_thread first)."""
     probe = (
         "import json, numpy, threadpoolctl\n"
-        "from umad_common.dataflow.runtime import one_blas_thread\n"
+        "from umad_common.dataflow.replica import one_blas_thread\n"
         "blas = lambda: [p['num_threads'] for p in threadpoolctl.threadpool_info() if p['user_api'] == 'blas']\n"
         "before = blas()\n"
         "one_blas_thread()\n"

@@ -107,9 +107,13 @@ class RewindableCounterSource(CounterSource):
     def frame_at(self, run, seq):
         return _counter_frame(int(run[3:]), seq, self.params.size)
 
+    def runs(self):
+        return {f"run{r}": self.params.frames for r in range(self.params.runs)}
+
 
 class RunningSum(Operator):
-    """Stateful: the sum of all values of the run so far (needs every earlier frame, in order)."""
+    """Stateful: the sum of all values of the run so far (needs every earlier frame, in order), each
+    run its own; its outputs name the process that made them (meta `pid`)."""
 
     kind = "toy_running_sum"
     inputs = (Input("x"),)
@@ -122,14 +126,17 @@ class RunningSum(Operator):
 
     def __init__(self, params=None, context=None):
         super().__init__(params, context)
-        self.run, self.total = None, 0.0
+        self.totals: dict[str, float] = {}  # run -> its sum so far
 
     def process(self, frame):
-        if frame.run != self.run:
-            self.run, self.total = frame.run, 0.0
+        total = (0.0 if frame.seq == 0 else self.totals[frame.run]) + float(frame.inputs["x"].arrays["x"][0])
         time.sleep(self.params.delay_s)
-        self.total += float(frame.inputs["x"].arrays["x"][0])
-        return {"y": Output({"x": np.array([self.total], np.float32)})}
+        self.totals[frame.run] = total
+        return {"y": Output({"x": np.array([total], np.float32)}, {"pid": os.getpid()})}
+
+    def end_run(self, run):
+        self.totals.pop(run, None)
+        return {}
 
 
 class Logger(Operator):
@@ -143,10 +150,9 @@ class Logger(Operator):
 
     def process(self, frame):
         with Path(self.params.log).open("a") as f:
-            f.write(
-                json.dumps({"run": frame.run, "seq": frame.seq, "value": float(frame.inputs["x"].arrays["x"][0])})
-                + "\n"
-            )
+            x = frame.inputs["x"]
+            line = {"run": frame.run, "seq": frame.seq, "value": float(x.arrays["x"][0]), "pid": x.meta.get("pid")}
+            f.write(json.dumps(line) + "\n")
         return {}
 
 

@@ -45,7 +45,7 @@ from umad_common.dataflow.allocator import keep_freed_memory
 from umad_common.dataflow.graph import Graph, validate_graph
 from umad_common.dataflow.messages import Message
 from umad_common.dataflow.operator import delivered
-from umad_common.dataflow.runtime import one_blas_thread
+from umad_common.dataflow.replica import one_blas_thread
 
 STAGE_FIELDS = ("cpu_ms", "runtime_cpu_ms", "wait_ms", "queue_ms", "transport_ms", "p50_ms")
 

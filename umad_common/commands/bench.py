@@ -1,4 +1,5 @@
-"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|record|control|live|all] [--out FILE.json]`.
+"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|record|control|live|all] [--out FILE.json]`;
+`umad bench scaling --op world_model` replicates the world model instead of the perceptual difference.
 
 Each bench measures both sides of its ratio in the same run on the same machine, so the ratio is
 meaningful where the absolute numbers are not. Results are printed as Markdown and, with --out,
@@ -10,7 +11,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from umad_common.commands.checks import drives, free_hub_port, model_file, writable_output
+from umad_common.commands.checks import InputError, drives, free_hub_port, model_file, writable_output
 
 BENCHES = (
     "bus",
@@ -34,6 +35,16 @@ def add_arguments(parser):
         "--frames", type=int, default=None, help="frames per bench, commands for control (default: each bench's own)"
     )
     parser.add_argument("--pixels", type=int, default=10**8, help="pixels for the metrics bench")
+    parser.add_argument(
+        "--op",
+        choices=("perceptual", "world_model"),
+        default="perceptual",
+        help="scaling: the operator replicated, the perceptual difference (stateless: frames split by seq) or the "
+        "world model (ordered: keyed replicas, each drive to one replica)",
+    )
+    parser.add_argument(
+        "--drives", type=int, default=4, help="scaling --op world_model: generated drives, sent side by side"
+    )
     parser.add_argument("--hub", default="tcp/127.0.0.1:7449", help="loopback endpoint the bench graphs use")
     parser.add_argument(
         "--shm-pool-mib", type=int, default=None, help="bus: the graph's `shm_pool_mib` (default: Zenoh's 16 MiB)"
@@ -66,6 +77,8 @@ def run(args) -> int:
         model_file(args.world_model, "--world-model", "world model")
     if set(which) & HUB_BENCHES:
         free_hub_port(args.hub, "--hub")
+    if args.drives < 1:
+        raise InputError.of("--drives", args.drives, "at least 1 drive")
     results = {}
     for name in which:
         print(f"running bench {name} ...", flush=True)
@@ -98,6 +111,10 @@ def _run_one(name: str, args) -> dict:
         from umad_common.benchmarks.predictors import bench_predictors
 
         return bench_predictors(frames=args.frames or 40)
+    if name == "scaling" and args.op == "world_model":
+        from umad_common.benchmarks.scaling import bench_world_model_scaling
+
+        return bench_world_model_scaling(drives=args.drives, frames=args.frames or 40, hub=args.hub)
     if name == "scaling":
         from umad_common.benchmarks.scaling import bench_scaling
 

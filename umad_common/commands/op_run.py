@@ -22,6 +22,6 @@ def run(args) -> int:
         ids = ", ".join(op.id for op in graph.spec.operators)
         raise InputError.of(f"operator {args.id!r}", f"not in the graph {args.graph}", f"one of its operators: {ids}")
 
-    from umad_common.dataflow.runtime import run_operator
+    from umad_common.dataflow.replica import run_operator
 
     run_operator(graph, args.id, args.replica, args.connect, cert=args.cert, key=args.key)  # ends the process

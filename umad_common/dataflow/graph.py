@@ -76,7 +76,9 @@ class OperatorSpec(BaseModel):
         return [value] if isinstance(value, str) else list(value)
 
     params: dict[str, Any] = Field(default_factory=dict)
-    replicas: int = Field(1, description="processes sharing this operator's frames")
+    replicas: int = Field(
+        1, description="processes sharing this operator's frames (an ordered operator's runs, each run to one replica)"
+    )
     python: str | None = Field(None, description="interpreter of another environment to run this operator in")
 
 
@@ -293,8 +295,6 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
             problems.append(
                 f"operator {op.id!r}: a source's Params must extend umad_common.dataflow.pacing.SourceParams (its pacing)"
             )
-        if cls.ordered and op.replicas > 1:
-            problems.append(f"operator {op.id!r}: kind {cls.kind!r} processes frames in order and cannot have replicas")
         ports = {p.name: p for p in cls.inputs}
         for name in sorted(set(op.inputs) - set(ports)):
             problems.append(

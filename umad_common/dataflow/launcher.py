@@ -35,6 +35,7 @@ from umad_common.dataflow.access import access_control
 from umad_common.dataflow.bus import HubJoinError, Keys, answer, cleanup_stale_shm, close_session, open_client
 from umad_common.dataflow.exit_codes import EXIT_CONFIG, EXIT_INCOMPLETE, EXIT_STOPPED
 from umad_common.dataflow.graph import Graph, GraphError, OperatorSpec, load_graph
+from umad_common.dataflow.launcher_report import ProgressLine, summary_table
 from umad_common.dataflow.mcap_log import describe_loss
 from umad_common.dataflow.payload_ring import SWEPT_BY_LAUNCHER, remove_stale_rings
 from umad_common.dataflow.recording import Recording
@@ -46,7 +47,6 @@ RECORDER_CLOSE_S = 1.0  # after a signal: what the recorder received by then is 
 RECORDER_DRAIN_S = 30.0  # a finished graph: the recorder writes what is still queued (acked frames: little)
 RING_GRACE_S = 30.0  # a replica's payload ring outlives it this long, for the recorder
 HUB_CONNECT_TIMEOUT_S = 60.0
-PROGRESS_INTERVAL_S = 15.0
 HUB_MIN_LIFETIME_S = 5.0  # a hub that dies sooner after its start counts as failing to start
 OPERATOR_NICENESS = 5  # operators yield the CPU to the hub and the launcher (the control path)
 
@@ -68,33 +68,6 @@ class Replica:
     @property
     def name(self) -> str:
         return f"{self.op_id}.{self.index}"
-
-
-class ProgressLine:
-    """Every PROGRESS_INTERVAL_S: frames acked by every sink, out of the total when the sources know
-    it, with the rate and the time left. Nothing until the first frame is through."""
-
-    def __init__(self) -> None:
-        self.last = time.monotonic()
-        self.first: tuple[float, int] | None = None
-
-    def update(self, source_stats: list[dict | None]) -> str | None:
-        now = time.monotonic()
-        known = [s for s in source_stats if s]
-        done = sum(s.get("acked", 0) for s in known)
-        if done == 0 or now - self.last < PROGRESS_INTERVAL_S:
-            return None
-        self.last = now
-        if self.first is None:
-            self.first = (now, done)
-            return f"{done} frames through the graph"
-        rate = (done - self.first[1]) / max(now - self.first[0], 1e-9)
-        totals = [s.get("total_frames") for s in known]
-        if len(known) < len(source_stats) or None in totals:
-            return f"{done} frames through the graph, {rate:.2f} frames/s"
-        total = sum(totals)
-        left = f", ~{(total - done) / rate:.0f} s left" if rate > 0 else ""
-        return f"{done}/{total} frames ({100 * done / max(total, 1):.0f} %), {rate:.2f} frames/s{left}"
 
 
 def process_cpu_s(pid: int) -> float | None:
@@ -169,7 +142,7 @@ class Launcher:
         cmd = [
             python,
             "-m",
-            "umad_common.dataflow.runtime",
+            "umad_common.dataflow.replica",
             "--graph",
             str(graph_file),
             "--op",
@@ -533,33 +506,3 @@ class Launcher:
             return
         with self._print_lock:
             print(summary_table(self.stats), flush=True)
-
-
-SUMMARY_TIMES = {  # stats field -> column: where a frame's time went in each replica, ms per frame
-    "p50_ms": "p50",
-    "p99_ms": "p99",
-    "cpu_ms": "cpu",
-    "runtime_cpu_ms": "rt cpu",
-    "wait_ms": "wait",
-    "queue_ms": "queue",
-    "transport_ms": "bus",
-}
-
-
-def summary_table(stats: dict[str, dict]) -> str:
-    """The final per-replica table: counts (`passed`: frames passed over in live mode for a newer
-    one), then ms per frame: processing latency (p50, p99), the operator's own CPU (`cpu`), the
-    runtime's and the bus's CPU in the process (`rt cpu`), waiting for a slower input (`wait`),
-    waiting for this replica to be free (`queue`: replicate it), and the hop from the producer
-    (`bus`)."""
-    head = f"{'replica':<24}{'in':>7}{'out':>7}{'errors':>7}{'bad':>5}{'dups':>5}{'passed':>7}"
-    lines = [head + "".join(f"{col:>8}" for col in SUMMARY_TIMES.values()) + "   (times: ms per frame)"]
-    for name in sorted(stats):
-        s = stats[name]
-        row = (
-            f"{name:<24}{s['frames_in']:>7}{s['frames_out']:>7}{s['errors']:>7}{s['bad_messages']:>5}"
-            f"{s['duplicates']:>5}{s.get('superseded', 0):>7}"
-        )
-        times = [s.get(field) for field in SUMMARY_TIMES]
-        lines.append(row + "".join(f"{t:>8.1f}" if t is not None else f"{'-':>8}" for t in times))
-    return "\n".join(lines)

@@ -131,8 +131,8 @@ class Operator:
         kind: the name graph.yaml uses.
         inputs / outputs: the ports.
         Params: a pydantic model; unknown keys are refused (set `extra="forbid"`).
-        ordered: frames of a run arrive in seq order, starting at 0 (stateful operators); such an
-            operator runs as a single replica. In live mode (a realtime source) the seqs still
+        ordered: frames of a run arrive in seq order, starting at 0 (stateful operators); with
+            `replicas: k` each run goes to one replica, which keeps the run's state. In live mode (a realtime source) the seqs still
             increase but may skip: a frame lost on the way, or stale once a newer one was ready, is
             passed over, and the operator handles the gap it sees in seq (the world model bridges it).
         end_of_run_outputs: `end_run` may return outputs (e.g. the accumulator's final metrics).
@@ -230,6 +230,11 @@ class Source(Operator):
 
     def total_frames(self) -> int | None:
         """How many frames `frames` will yield, when known up front (the launcher shows progress)."""
+        return None
+
+    def runs(self) -> dict[str, int] | None:
+        """Every run and its number of frames, in `frames`' order, where `frame_at` reads any frame
+        of them (a source may then send runs side by side: `runs_in_flight`); None otherwise."""
         return None
 
 

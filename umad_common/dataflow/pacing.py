@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class SourceParams(BaseModel):
@@ -21,6 +21,21 @@ class SourceParams(BaseModel):
     window: int = Field(8, ge=1, description="lossless pacing: frames in flight before waiting for acks")
     rate_hz: float = Field(10.0, gt=0, description="realtime pacing: frames published per second")
     ack_timeout_s: float = Field(15.0, gt=0, description="lossless pacing: re-send a frame not acked within this time")
+    runs_in_flight: int = Field(
+        1,
+        ge=1,
+        description="lossless pacing: runs sent side by side, their frames taken in turn, each with its own window: "
+        "replicas of an ordered operator (the world model) then work on different runs at once. Needs a source "
+        "that reads its frames in any order (`Source.runs`)",
+    )
+
+    @model_validator(mode="after")
+    def _side_by_side_is_lossless(self) -> SourceParams:
+        if self.runs_in_flight > 1 and self.pacing != "lossless":
+            raise ValueError(
+                f"runs_in_flight {self.runs_in_flight} needs pacing lossless; a realtime source sends one run"
+            )
+        return self
 
 
 class JoinParams(BaseModel):

@@ -9,6 +9,7 @@ import threading
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
+from functools import partial
 from typing import Any, Protocol
 
 import msgpack
@@ -93,11 +94,28 @@ class SourceDriver:
         host.stats.total_frames = self.source.total_frames()
         if self.max_frames is not None and host.stats.total_frames is not None:
             host.stats.total_frames = min(host.stats.total_frames, self.max_frames)
+        started = time.monotonic()
+        runs = self.source.runs() if self.pacing.runs_in_flight > 1 else None
+        if self.pacing.runs_in_flight > 1 and runs is None:
+            host.log.warning(
+                "runs_in_flight %d: %s cannot read its frames in any order (Source.runs); sending one run at a time",
+                self.pacing.runs_in_flight,
+                type(self.source).__name__,
+            )
+        sent = self._send_side_by_side(runs) if runs is not None else self._send_in_order(started)
+        host.stats.busy_s = time.monotonic() - started
+        host.publish_stats(force=True)
+        host.log.info("source finished: %d frames sent, %d retransmits", sent, host.stats.retransmits)
+
+    def _send_in_order(self, started: float) -> int:
+        """Send the source's frames as `frames` yields them, one run after the other; returns how
+        many were sent."""
+        host = self.host
         sent = 0
         current: str | None = None
         count = 0
         last_stamp = 0
-        next_due = started = time.monotonic()
+        next_due = started
         priming, prime_until = self.pacing.pacing == "realtime", started + PRIME_S
         frames = self.source.frames()
         while not host.shutdown.is_set() and (self.max_frames is None or sent < self.max_frames):
@@ -124,9 +142,64 @@ class SourceDriver:
             last_stamp = sf.stamp_ns
         if current is not None and not host.shutdown.is_set():
             self._end_run(current, count, last_stamp)
-        host.stats.busy_s = time.monotonic() - started
-        host.publish_stats(force=True)
-        host.log.info("source finished: %d frames sent, %d retransmits", sent, host.stats.retransmits)
+        return sent
+
+    def _send_side_by_side(self, runs: dict[str, int]) -> int:
+        """Send `runs_in_flight` runs at once, taking their frames in turn, each run with at most
+        `window` frames in flight; a run's end-of-run marker goes out once its own frames are
+        acked, and the next run starts in its place. Returns how many frames were sent."""
+        host = self.host
+        waiting = [(run, length) for run, length in runs.items() if length > 0]
+        waiting.reverse()  # popped from the end: `runs`' order
+        sending: dict[str, list[int]] = {}  # run -> [next seq, frames, stamp of the last frame sent]
+        closing: dict[str, tuple[int, int]] = {}  # run -> (frames, last stamp): every frame sent, its marker due
+        sent = 0
+        while not host.shutdown.is_set():
+            self._close_acked_runs(closing)
+            while waiting and len(sending) + len(closing) < self.pacing.runs_in_flight:
+                run, length = waiting.pop()
+                sending[run] = [0, length, 0]
+            if not sending and not closing:
+                break
+            run = self._next_run_with_room(sending)
+            if run is None:
+                self._service(ACK_WAIT_S)
+                continue
+            seq, length, _ = sending[run]
+            sf = self._read(partial(self.source.frame_or_error, run, seq))
+            assert sf is not None, "frame_or_error returns a frame or an error frame"
+            self._send((run, seq), self._payloads(sf))
+            sent += 1
+            del sending[run]
+            if seq + 1 < length:
+                sending[run] = [seq + 1, length, sf.stamp_ns]  # at the back of the turn
+            else:
+                closing[run] = (length, sf.stamp_ns)
+            if self.max_frames is not None and sent >= self.max_frames:  # every run sent so far ends here
+                closing.update({r: (next_seq, stamp) for r, (next_seq, _, stamp) in sending.items() if next_seq})
+                sending.clear()
+                waiting.clear()
+        while self.inflight and not host.shutdown.is_set():
+            self._service(ACK_WAIT_S)
+        return sent
+
+    def _next_run_with_room(self, sending: dict[str, list[int]]) -> str | None:
+        """The first run in turn with fewer than `window` frames in flight (None: every run waits for acks)."""
+        in_flight: dict[str, int] = defaultdict(int)
+        for run, _ in self.inflight:
+            in_flight[run] += 1
+        return next((run for run in sending if in_flight[run] < self.pacing.window), None)
+
+    def _close_acked_runs(self, closing: dict[str, tuple[int, int]]) -> None:
+        """Send the end-of-run marker of every closing run whose frames are all acked."""
+        busy = {run for run, _ in self.inflight}
+        for run, (frames, stamp_ns) in list(closing.items()):
+            if run in busy:
+                continue
+            self.markers.add((run, frames))
+            self._send((run, frames), self.host.markers(run, frames, stamp_ns, {"eos": True, "frames": frames}))
+            self.host.log.info("run %s: %d frames", run, frames)
+            del closing[run]
 
     def _prime(self, until: float) -> bool:
         """Realtime pacing at start-up: wait for the frame just sent to be acked; True while the
@@ -154,9 +227,13 @@ class SourceDriver:
 
     def _next_frame(self, frames: Iterator[SourceFrame]) -> SourceFrame | None:
         """The source's next frame, its reading counted as the source's own work (`cpu_ms`)."""
+        return self._read(lambda: next(frames, None))
+
+    def _read(self, read: Callable[[], SourceFrame | None]) -> SourceFrame | None:
+        """A frame `read` returns, its reading counted as the source's own work (`cpu_ms`)."""
         self.host.count_cpu_from_now()
         cpu_start = time.process_time()
-        sf = next(frames, None)
+        sf = read()
         if sf is not None:
             self.host.stats.cpu_s += time.process_time() - cpu_start
             self.host.stats.computed += 1

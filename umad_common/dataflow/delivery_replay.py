@@ -1,0 +1,37 @@
+"""The replay path: lossless delivery (a source that re-sends what was not acked) to an operator
+that keeps no state between frames. Each joined frame is finished as soon as it is complete, in
+whatever order frames complete; replicas split a run's frames by seq over the live replica set
+(`OperatorRuntime.owns_seq`), so k replicas share every run.
+
+Entry point: `ReplayDelivery.deliver(ready)`, called by the transform loop with the frames the
+joiner has complete."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from umad_common.dataflow.messages import Message
+from umad_common.dataflow.operator import Frame
+
+if TYPE_CHECKING:
+    from umad_common.dataflow.runtime import OperatorRuntime
+
+
+class ReplayDelivery:
+    """Every complete frame finished at once, in any order."""
+
+    def __init__(self, runtime: OperatorRuntime):
+        self.rt = runtime
+
+    def accepts(self, msg: Message) -> bool:
+        """Whether this replica joins `msg`: its frame's seq falls to this replica."""
+        return self.rt.owns_seq(msg.seq)
+
+    def deliver(self, ready: list[Frame]) -> None:
+        for frame in ready:
+            self.rt.processor.finish(frame)
+
+    def end_run(self, msg: Message) -> None:
+        payloads = self.rt.processor.end_run(msg)
+        if payloads is not None:
+            self.rt.processor.publish_and_ack(msg.run, msg.seq, payloads)
