@@ -102,3 +102,33 @@ def test_random_bytes_never_escape_as_other_errors(data):
         decode(data)
     except MessageError:
         pass
+
+
+def test_arrays_are_read_in_place_as_views_that_keep_the_payload_alive():
+    image = np.arange(64 * 48, dtype=np.uint8).reshape(64, 48)
+    payload = bytearray(encode(Message("r", 3, arrays={"image": image})))
+    back = decode(payload)
+    assert np.shares_memory(back.arrays["image"], np.frombuffer(payload, np.uint8))
+    del payload  # the view holds the buffer, not a dangling pointer
+    np.testing.assert_array_equal(back.arrays["image"], image)
+
+
+def test_an_array_misaligned_in_the_payload_is_copied_to_an_aligned_one():
+    values = np.arange(5, dtype="<f8")
+    payload = encode(Message("r", 0, arrays={"v": values}))
+    shifted = memoryview(bytearray(b"\0" + payload))[1:]  # every array now starts one byte off its alignment
+    back = decode(shifted)
+    assert back.arrays["v"].flags.aligned
+    np.testing.assert_array_equal(back.arrays["v"], values)
+
+
+def test_reading_in_place_gives_what_plain_msgpack_gives():
+    masks = np.zeros((2, 8, 9), bool)
+    masks[1, 2:5] = True
+    msg = Message("run", 7, 11, "p", {"nested": {"a": [1, 2.5, None]}}, {"m": masks, "f": np.ones((3, 2), "<f4")})
+    payload = encode(msg)
+    by_msgpack = msgpack.unpackb(payload)
+    back = decode(payload)
+    assert back.meta == by_msgpack["meta"]
+    for name, spec in by_msgpack["arrays"].items():
+        assert bytes(encode(Message("run", 7, 11, "p", arrays={name: back.arrays[name]}))).endswith(spec["data"])

@@ -3,6 +3,8 @@ through Zenoh, fetched from the publisher where the ring cannot be mapped."""
 
 from __future__ import annotations
 
+import logging
+import multiprocessing
 import os
 import signal
 import subprocess
@@ -30,6 +32,7 @@ from umad_common.dataflow.payload_ring import (
     on_this_host,
     remove_stale_rings,
 )
+from umad_common.dataflow.shm_payloads import payload_plane
 
 
 def payload(size: int, fill: int = 0) -> bytes:
@@ -80,22 +83,65 @@ def test_a_ring_that_cannot_be_created_sends_payloads_inline(tmp_path):
     assert "cannot create" in ring.disabled_because
 
 
-def test_a_payload_decoded_where_it_lies_is_copied_out_or_dropped_if_overwritten_meanwhile(tmp_path):
+def test_a_taken_payload_is_a_copy_its_decoded_arrays_outlive_the_ring_going_round(tmp_path):
     ring, reader = PayloadRing("umad/t", tmp_path), PayloadReader(tmp_path)
-    message = reader.read(ring.pack(payload(INLINE_BELOW, 1)), decode)
+    message = decode(reader.take(ring.pack(payload(INLINE_BELOW, 1))))
     for fill in range(2, 200):  # round the ring several times
         ring.pack(payload(INLINE_BELOW, fill))
-    assert message.seq == 1 and (message.arrays["x"] == 1).all()  # its array was copied out of the ring
-
-    def decode_while_the_publisher_goes_round(view):
-        decoded = decode(view)
-        for fill in range(200):
-            ring.pack(payload(INLINE_BELOW, fill))
-        return decoded
-
-    assert reader.read(ring.pack(payload(INLINE_BELOW, 2)), decode_while_the_publisher_goes_round) is None
-    assert reader.read(payload(100, 3), decode).seq == 3  # an inline payload is decoded as it came
+    assert message.seq == 1 and (message.arrays["x"] == 1).all()
     ring.close()
+
+
+def _write_round_and_round(directory: str, references, rounds: int) -> None:
+    """A publisher process: payloads whose every byte is their seq, their references sent at once."""
+    ring = PayloadRing("umad/t", Path(directory))
+    for seq in range(rounds):
+        references.put(ring.pack(payload(INLINE_BELOW, seq % 256)))
+    references.put(None)
+    ring.close(unlink=False)
+
+
+def test_a_payload_overwritten_while_a_reader_copies_it_is_never_accepted_torn(tmp_path):
+    """A publisher in another process goes round its ring while this reader copies payloads out:
+    whatever the interleaving, an accepted payload is whole (every byte its own seq), never a mix."""
+    spawn = multiprocessing.get_context("spawn")
+    references = spawn.Queue()
+    writer = spawn.Process(target=_write_round_and_round, args=(str(tmp_path), references, 3000))
+    writer.start()
+    reader, accepted, refused = PayloadReader(tmp_path), 0, 0
+    try:
+        while (reference := references.get(timeout=60)) is not None:
+            taken = reader.take(reference)
+            if taken is None:
+                refused += 1
+                continue
+            message = decode(taken)
+            assert (message.arrays["x"] == message.seq).all(), f"torn payload accepted: seq {message.seq}"
+            accepted += 1
+    finally:
+        writer.join(30)
+        reader.close()
+    assert accepted + refused == 3000 and accepted > 0
+
+
+@pytest.mark.parametrize("machine", ["aarch64", "arm64", "riscv64", "ppc64le"])
+def test_on_a_cpu_without_x86_memory_order_no_ring_is_made(tmp_path, monkeypatch, machine, caplog):
+    monkeypatch.setattr("platform.machine", lambda: machine)
+    ring = PayloadRing("umad/t", tmp_path)
+    large = payload(1 << 20)
+    assert ring.pack(large) == large and not list(tmp_path.iterdir())
+    assert machine in ring.disabled_because
+    with caplog.at_level(logging.INFO, "umad.payloads"):
+        assert payload_plane(True) == "zenoh_shm"
+    assert caplog.messages == [
+        f"payload rings need x86's memory order and this CPU is {machine}: "
+        "large payloads go through Zenoh's shared memory"
+    ]
+    assert payload_plane("zenoh_shm") == "zenoh_shm" and payload_plane(False) is None
+
+
+def test_on_x86_the_ring_is_the_same_host_plane():
+    assert payload_plane(True, "x86_64") == "ring" and payload_plane("zenoh_shm", "x86_64") == "zenoh_shm"
 
 
 def test_a_reader_that_cannot_map_the_ring_fetches_from_the_publisher(tmp_path, hub_endpoint):
