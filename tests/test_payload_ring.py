@@ -32,7 +32,7 @@ from umad_common.dataflow.payload_ring import (
     on_this_host,
     remove_stale_rings,
 )
-from umad_common.dataflow.shm_payloads import payload_plane
+from umad_common.dataflow.shm_payloads import ZenohShmPayloads, payload_plane
 
 
 def payload(size: int, fill: int = 0) -> bytes:
@@ -181,11 +181,13 @@ def test_a_replica_whose_hub_is_on_another_host_publishes_through_zenoh():
     assert not on_this_host("tcp/192.0.2.1:7447")  # TEST-NET-1: never an address of this machine
 
 
-def large_toy_graph(tmp_path: Path, hub: str, **kw) -> Path:
-    """The toy graph with 400 KB frames: every frame message goes through the rings."""
+def large_toy_graph(tmp_path: Path, hub: str, shared_payloads: bool | str = True, **kw) -> Path:
+    """The toy graph with 400 KB frames: every frame message goes through the rings (or, with
+    `shared_payloads: zenoh_shm`, Zenoh's shared memory)."""
     path = toy_graph(tmp_path, hub, **kw)
     data = yaml.safe_load(path.read_text())
     data["operators"][0]["params"]["size"] = 100_000
+    data["shared_payloads"] = shared_payloads
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
 
@@ -207,6 +209,59 @@ def test_a_recording_holds_the_payloads_and_replays_byte_for_byte(tmp_path, hub_
 
     assert sink_payloads(first) == sink_payloads(second)
     assert not remove_stale_rings()  # every replica unlinked its ring on the way out
+
+
+def test_payloads_in_zenohs_shared_memory_arrive_once_and_record_the_bytes_the_rings_record(tmp_path, hub_endpoint):
+    logs = {}
+    for plane in (True, "zenoh_shm"):
+        folder = tmp_path / str(plane)
+        folder.mkdir()
+        graph = large_toy_graph(folder, hub_endpoint, shared_payloads=plane, frames=12)
+        logs[plane] = folder / "run.mcap"
+        rings_before = set(RING_DIR.glob("umad-*.ring"))
+        result = run_umad("launch", str(graph), "--record", str(logs[plane]), timeout=120)
+        assert result.returncode == 0, result.stdout
+        assert_exactly_once(folder, 12)
+        if plane == "zenoh_shm":
+            assert set(RING_DIR.glob("umad-*.ring")) <= rings_before  # no replica made a ring
+
+    def source_payloads(path):
+        return sorted(r.data for r in read_log(path) if r.topic.startswith("umad/toy/source/"))
+
+    def sink_arrays(path):  # the sink's meta names its log file, which differs
+        sink = (decode(r.data) for r in read_log(path) if r.topic.startswith("umad/toy/sink/"))
+        return sorted((m.run, m.seq, m.arrays["x"].tobytes()) for m in sink if "x" in m.arrays)
+
+    assert source_payloads(logs[True]) == source_payloads(logs["zenoh_shm"])
+    assert sink_arrays(logs[True]) == sink_arrays(logs["zenoh_shm"]) != []
+
+
+def test_a_payload_in_zenohs_shared_memory_reaches_a_subscriber_whole_and_a_full_pool_sends_it_as_it_is(
+    hub_endpoint,
+):
+    hub = open_hub(hub_endpoint)
+    publisher, subscriber = open_client(hub_endpoint), open_client(hub_endpoint)
+    received = []
+    try:
+        listener = subscriber.declare_subscriber("umad/t/x", lambda sample: received.append(sample.payload.to_bytes()))
+        put = publisher.declare_publisher("umad/t/x")
+        deadline = time.monotonic() + 10
+        while not put.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        shm = ZenohShmPayloads(pool_mib=4)
+        sent = [payload(1 << 20, fill) for fill in range(6)]
+        packed = [shm.pack(p) for p in sent]  # held here, so the pool (3 such buffers) fills up
+        assert shm.through_sockets > 0 and packed[-1] is sent[-1]
+        assert shm.pack(payload(100)) == payload(100)  # small ones travel as they are
+        for each in packed:
+            put.put(each)
+        while len(received) < len(sent) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert received == sent
+        listener.undeclare()
+    finally:
+        for session in (publisher, subscriber, hub):
+            session.close()
 
 
 def test_a_ring_left_to_the_launcher_still_gives_its_payloads_after_its_publisher_closed(tmp_path):
