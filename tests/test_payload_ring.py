@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+import zenoh
 
 from tests.conftest import REPO, run_umad, start_umad, umad_env
 from tests.test_distributed import frames_done_by
@@ -262,6 +263,16 @@ def test_a_payload_in_zenohs_shared_memory_reaches_a_subscriber_whole_and_a_full
     finally:
         for session in (publisher, subscriber, hub):
             session.close()
+
+
+def test_without_room_for_a_zenoh_pool_payloads_go_as_they_are(monkeypatch):
+    def no_room(size):
+        raise zenoh.ZError("no space left on device")
+
+    monkeypatch.setattr("umad_common.dataflow.shm_payloads.ShmProvider.default_backend", no_room)
+    shm = ZenohShmPayloads(pool_mib=64)
+    large = payload(1 << 20)
+    assert shm.pack(large) is large and "no 64 MiB pool" in shm.disabled_because
 
 
 def test_a_ring_left_to_the_launcher_still_gives_its_payloads_after_its_publisher_closed(tmp_path):

@@ -43,13 +43,20 @@ class ZenohShmPayloads:
     """A publisher's pool in Zenoh's shared memory; `pack` turns a large payload into a buffer of it."""
 
     def __init__(self, pool_mib: int = DEFAULT_POOL_MIB):
-        self.provider = ShmProvider.default_backend(pool_mib << 20)
         self.through_sockets = 0  # payloads that found the pool full
+        self.disabled_because: str | None = None
+        try:
+            self.provider: ShmProvider | None = ShmProvider.default_backend(pool_mib << 20)
+        except zenoh.ZError as exc:  # e.g. a container's /dev/shm smaller than the pool
+            self.provider = None
+            self.disabled_because = f"no {pool_mib} MiB pool in Zenoh's shared memory ({exc}); payloads go as they are"
+            log.warning("%s", self.disabled_because)
 
     def pack(self, payload: bytes) -> zenoh.ZBytes | bytes:
-        """`payload` in a shared-memory buffer, or as it is when small or when the pool is full."""
+        """`payload` in a shared-memory buffer, or as it is when small, when the pool is full or
+        when there is no pool."""
         size = len(payload)
-        if size < INLINE_BELOW:
+        if size < INLINE_BELOW or self.provider is None:
             return payload
         try:
             buffer = self.provider.alloc(size, GarbageCollect())
