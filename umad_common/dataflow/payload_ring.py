@@ -59,9 +59,8 @@ _RESERVED_AT = 16
 _ALIGN = 64
 _REFERENCE = struct.Struct("<QQ")  # start (in bytes ever written), length; then the ring's file name
 _RING_NAME = re.compile(r"^umad-(\d+)-([0-9a-f]+)-(\d+)\.ring$")
-RING_CPUS = frozenset(
-    {"x86_64", "amd64", "i386", "i686", "x86"}
-)  # `platform.machine()` of a CPU with x86's memory order
+# what `platform.machine()` says on a CPU with x86's memory order
+RING_CPUS = frozenset({"x86_64", "amd64", "i386", "i686", "x86"})
 
 
 def ring_is_correct_here(machine: str | None = None) -> bool:
