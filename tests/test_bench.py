@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import json
+import sys
 
+import numpy as np
 import pytest
 
+from umad_common.benchmarks.bus import against_dora, checksum
+from umad_common.benchmarks.dora_relay import dora_missing, over_dora
 from umad_common.cli import main as umad_main
 
 
@@ -38,7 +42,8 @@ def test_bus_bench_measures_the_runtime_against_bare_zenoh_one_process_and_a_sec
     out = tmp_path / "bench.json"
     assert umad_main(["bench", "bus", "--frames", "24", "--hub", hub_endpoint, "--out", str(out)]) == 0
     bus = json.loads(out.read_text())["bus"]
-    sides = ("bare_zenoh_window_8", "bus_window_8", "bus_window_8_through_zenoh", "bus_window_8_through_hub")
+    sides = ("bare_zenoh_window_8", "bus_window_8", "bus_window_8_zenoh_shm", "bus_window_8_through_zenoh")
+    sides += ("bus_window_8_through_hub",)
     for side in ("in_process", *sides, "bus_window_1"):
         assert bus[side]["fps"] > 0 and bus[side]["cpu_ms_per_frame"] > 0, side
         assert bus[side]["p99_ms"] >= bus[side]["p50_ms"] > 0, side
@@ -60,6 +65,29 @@ def test_bus_bench_measures_the_runtime_against_bare_zenoh_one_process_and_a_sec
         security["through_sockets_mtls_acl"]["fps"] / security["through_sockets_tcp"]["fps"]
     )
     assert len(security["fps_ratio_mtls_acl_over_tcp_per_round"]) == security["rounds"] == 3
+
+
+def test_the_bench_relay_reads_every_byte():
+    data = np.zeros(4099, np.uint8)
+    for where in (0, 4096, 4098):  # a page's start, beyond `data[::4096]`'s reach, in the 8-byte tail
+        touched = data.copy()
+        touched[where] = 1
+        assert checksum(touched) == 1
+    assert checksum(np.full(16, 255, np.uint8)) == 2 * 0xFFFFFFFFFFFFFFFF % (1 << 64)
+
+
+def test_against_dora_without_dora_rs_says_so_in_one_line_and_nothing_else(monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "dora", None)  # as if not installed
+    assert against_dora(10, 1 << 10, {"fps": 1.0, "cpu_ms_per_frame": 1.0}) == {
+        "dora_window_8": "dora-rs is not installed (pip install 'umad[dora]'): the relay against dora-rs is not run"
+    }
+    assert capsys.readouterr().out.count("\n") == 1
+
+
+@pytest.mark.skipif(dora_missing() is not None, reason="dora-rs is not installed (the `dora` extra)")
+def test_the_dora_relay_acks_every_frame_when_lossless():
+    result = over_dora(frames=40, size_bytes=1 << 16, window=8)
+    assert result["lost_frames"] == 0 and result["fps"] > 0 and result["cpu_ms_per_frame"] > 0
 
 
 @pytest.mark.slow

@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from umad_common.dataflow.messages import ALLOWED_DTYPES, Message, MessageError, decode, encode
+from umad_common.dataflow.messages import ALLOWED_DTYPES, IN_PLACE_FROM, Message, MessageError, decode, encode
 
 dtypes = st.sampled_from(sorted(ALLOWED_DTYPES)).map(np.dtype)
 arrays = dtypes.flatmap(lambda dt: hnp.arrays(dt, hnp.array_shapes(min_dims=0, max_dims=4, max_side=5)))
@@ -102,3 +102,58 @@ def test_random_bytes_never_escape_as_other_errors(data):
         decode(data)
     except MessageError:
         pass
+
+
+def test_a_large_payloads_arrays_are_read_in_place_as_views_that_keep_the_payload_alive():
+    image = np.arange(1024 * 768, dtype=np.uint8).reshape(1024, 768)
+    payload = bytearray(encode(Message("r", 3, arrays={"image": image})))
+    back = decode(payload)
+    assert np.shares_memory(back.arrays["image"], np.frombuffer(payload, np.uint8))
+    del payload  # the view holds the buffer, not a dangling pointer
+    np.testing.assert_array_equal(back.arrays["image"], image)
+
+
+def test_a_small_payloads_arrays_are_decoded_by_msgpack_as_copies():
+    image = np.arange(64 * 48, dtype=np.uint8).reshape(64, 48)
+    payload = bytearray(encode(Message("r", 3, arrays={"image": image})))
+    back = decode(payload)
+    assert not np.shares_memory(back.arrays["image"], np.frombuffer(payload, np.uint8))
+    np.testing.assert_array_equal(back.arrays["image"], image)
+
+
+def test_an_array_misaligned_in_the_payload_is_copied_to_an_aligned_one():
+    values = np.arange(IN_PLACE_FROM, dtype="<f8")
+    payload = encode(Message("r", 0, arrays={"v": values}))
+    shifted = memoryview(bytearray(b"\0" + payload))[1:]  # every array now starts one byte off its alignment
+    back = decode(shifted)
+    assert back.arrays["v"].flags.aligned
+    np.testing.assert_array_equal(back.arrays["v"], values)
+
+
+def test_reading_in_place_gives_what_plain_msgpack_gives():
+    masks = np.zeros((2, 8, 9), bool)
+    masks[1, 2:5] = True
+    arrays = {"m": masks, "f": np.ones((3, 2), "<f4"), "big": np.arange(IN_PLACE_FROM, dtype="<u2")}
+    msg = Message("run", 7, 11, "p", {"nested": {"a": [1, 2.5, None]}}, arrays)
+    payload = encode(msg)
+    by_msgpack = msgpack.unpackb(payload)
+    back = decode(payload)
+    assert back.meta == by_msgpack["meta"]
+    for name, spec in by_msgpack["arrays"].items():
+        assert bytes(encode(Message("run", 7, 11, "p", arrays={name: back.arrays[name]}))).endswith(spec["data"])
+
+
+def test_a_large_payload_corrupted_anywhere_in_its_header_raises_only_message_errors():
+    payload = encode(Message("run", 1, 2, "p", {"k": [1, "v"]}, {"a": np.ones(IN_PLACE_FROM, np.uint8)}))
+    header_end = payload.index(b"\xc6")  # the big binary's type byte: everything before is msgpack structure
+    rng = np.random.default_rng(0)
+    for at in range(header_end + 5):
+        for value in rng.integers(0, 256, 6):
+            corrupted = bytearray(payload)
+            corrupted[at] = value
+            try:
+                decode(corrupted)
+            except MessageError:
+                pass
+    with pytest.raises(MessageError, match="not valid msgpack"):
+        decode(payload[:-1])

@@ -4,10 +4,15 @@ the price of the bus itself (transport, joining, acks), not of serialisation. Th
 runs in a process of its own at the operators' CPU priority (the launcher lowers theirs), so on a
 machine busy with other work both sides compete for the CPU on the same terms.
 
-The bus runs three times at window 8: as graphs run (payloads through the publishers' shared-memory
-rings, Zenoh carrying references: `payload_ring.py`; replicas linked directly, not through the hub),
-with `shared_payloads: false` (every payload through Zenoh), and with `direct_links: false` (every
-message through the hub). Their ratios are what the rings and the direct links buy.
+The relay reads every byte of each frame (`checksum`), as a real operator reads its input.
+
+The bus runs four times at window 8: as graphs run on x86 (payloads through the publishers'
+shared-memory rings, Zenoh carrying references: `payload_ring.py`; replicas linked directly, not
+through the hub), with `shared_payloads: zenoh_shm` (payloads in Zenoh's shared memory, as on other
+CPUs: `shm_payloads.py`), with `shared_payloads: false` (every payload through Zenoh as it is), and
+with `direct_links: false` (every message through the hub). Their ratios are what the rings, Zenoh's
+shared memory and the direct links buy. `--against dora`: the same relay as a dora-rs dataflow
+(`dora_relay.py`), run right after the bus.
 
 What securing the hub costs: the bus with every message through the hub and every payload through
 its sockets, neither in the payload rings nor in Zenoh's shared memory (as for a worker on another
@@ -62,8 +67,16 @@ class BlobSource(Source):
             yield SourceFrame("bench", seq, seq, {"blob": Output({"data": blob})})
 
 
+def checksum(data: np.ndarray) -> int:
+    """A sum that reads every byte of `data`: its bytes as little-endian 64-bit words (wrapping),
+    the last `nbytes % 8` one by one."""
+    raw = data.reshape(-1).view(np.uint8)
+    whole = raw.size - raw.size % 8
+    return (int(raw[:whole].view("<u8").sum(dtype=np.uint64)) + int(raw[whole:].sum())) % (1 << 64)
+
+
 class Relay(Operator):
-    """Passes the blob on, touching every byte (a checksum) as a real operator would read it."""
+    """Passes the blob on, reading every byte (`checksum`) as a real operator would read it."""
 
     kind = "bench_relay"
     inputs = (Input("blob"),)
@@ -71,7 +84,7 @@ class Relay(Operator):
 
     def process(self, frame):
         data = frame.inputs["blob"].arrays["data"]
-        return {"blob": Output({"data": data}, {"sum": int(data[::4096].sum())})}
+        return {"blob": Output({"data": data}, {"sum": checksum(data)})}
 
 
 class BlobSink(Operator):
@@ -352,15 +365,19 @@ def bench_bus(
     hub: str = "tcp/127.0.0.1:7449",
     shm_pool_mib: int | None = None,
     security_only: bool = False,
+    against: str | None = None,
 ) -> dict:
     """`shm_pool_mib`: the graph's `shm_pool_mib` (None: Zenoh's default pool). `security_only`: only
-    what securing the hub costs (`bench_security`)."""
+    what securing the hub costs (`bench_security`). `against="dora"`: also the relay as a dora-rs
+    dataflow (`dora_relay.py`), right after the bus, and their ratios."""
     security = bench_security(frames, size_bytes, hub)
     if security_only:
         return {"frames": frames, "frame_bytes": size_bytes, "security": security}
     local = in_process(frames, size_bytes)
     bare = bare_zenoh(frames, size_bytes, hub, window=8)
     bus = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib)
+    peer = against_dora(frames, size_bytes, bus) if against == "dora" else {}
+    zenoh_shm = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib, shared_payloads="zenoh_shm")
     through_zenoh = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib, shared_payloads=False)
     through_hub = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib, direct_links=False)
     bus1 = over_bus(frames, size_bytes, hub, window=1, shm_pool_mib=shm_pool_mib)
@@ -372,11 +389,14 @@ def bench_bus(
         "in_process": local,
         "bare_zenoh_window_8": bare,
         "bus_window_8": {k: bus[k] for k in keep},
+        **peer,
+        "bus_window_8_zenoh_shm": {k: zenoh_shm[k] for k in keep},
         "bus_window_8_through_zenoh": {k: through_zenoh[k] for k in keep},
         "bus_window_8_through_hub": {k: through_hub[k] for k in keep},
         "bus_window_1": {k: bus1[k] for k in keep},
         "fps_ratio_bus_over_in_process": bus["fps"] / local["fps"],
         "fps_ratio_bus_over_bus_through_zenoh": bus["fps"] / through_zenoh["fps"],
+        "fps_ratio_bus_over_bus_zenoh_shm": bus["fps"] / zenoh_shm["fps"],
         "fps_ratio_bus_over_bus_through_hub": bus["fps"] / through_hub["fps"],
         "fps_ratio_bare_zenoh_over_in_process": bare["fps"] / local["fps"],
         "fps_ratio_bus_through_zenoh_over_bare_zenoh": through_zenoh["fps"] / bare["fps"],
@@ -385,4 +405,27 @@ def bench_bus(
         "p50_ms_added_per_hop_window_1": (bus1["p50_ms"] - local["p50_ms"]) / 2,
         "cpu_ratio_bus_window_8_over_in_process": bus["cpu_ms_per_frame"] / local["cpu_ms_per_frame"],
         "security": security,
+    }
+
+
+def against_dora(frames: int, size_bytes: int, bus: dict) -> dict:
+    """The relay as a dora-rs dataflow at window 8, lossless and with blocking publishers
+    (`dora_relay.py`), and the bus's ratios to each; without dora-rs one line saying so, and
+    nothing else."""
+    from umad_common.benchmarks.dora_relay import dora_missing, over_dora
+
+    missing = dora_missing()
+    if missing:
+        print(missing, flush=True)
+        return {"dora_window_8": missing}
+    keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame", "daemon_cpu_ms_per_frame", "lost_frames")
+    lossless = over_dora(frames, size_bytes, window=8)
+    blocking = over_dora(frames, size_bytes, window=8, lossless=False)
+    return {
+        "dora_window_8": {k: lossless[k] for k in keep},
+        "dora_window_8_blocking_publishers": {k: blocking[k] for k in keep},
+        "fps_ratio_bus_over_dora": bus["fps"] / lossless["fps"],
+        "cpu_ratio_bus_over_dora": bus["cpu_ms_per_frame"] / lossless["cpu_ms_per_frame"],
+        "fps_ratio_bus_over_dora_blocking_publishers": bus["fps"] / blocking["fps"],
+        "cpu_ratio_bus_over_dora_blocking_publishers": bus["cpu_ms_per_frame"] / blocking["cpu_ms_per_frame"],
     }

@@ -95,7 +95,8 @@ class ArrivalListener:
 
         def on_sample(sample) -> None:
             arrived = time.monotonic()
-            msg = self.reader.read(sample.payload.to_bytes(), decode)
+            payload = self.reader.take(sample.payload.to_bytes())
+            msg = None if payload is None else decode(payload)
             with self.arrivals.lock:
                 if msg is None:
                     self.arrivals.unreadable += 1

@@ -50,6 +50,12 @@ def add_arguments(parser):
         "--shm-pool-mib", type=int, default=None, help="bus: the graph's `shm_pool_mib` (default: Zenoh's 16 MiB)"
     )
     parser.add_argument(
+        "--against",
+        choices=["dora"],
+        default=None,
+        help="bus: also run the relay as a dora-rs dataflow (the `dora` extra) and print the ratios",
+    )
+    parser.add_argument(
         "--security-only",
         action="store_true",
         help="bus: only its runs through the hub over plain TCP, mutual TLS, and mutual TLS with access control",
@@ -97,7 +103,11 @@ def _run_one(name: str, args) -> dict:
         from umad_common.benchmarks.bus import bench_bus
 
         return bench_bus(
-            frames=args.frames or 2000, hub=args.hub, shm_pool_mib=args.shm_pool_mib, security_only=args.security_only
+            frames=args.frames or 2000,
+            hub=args.hub,
+            shm_pool_mib=args.shm_pool_mib,
+            security_only=args.security_only,
+            against=args.against,
         )
     if name == "metrics":
         from umad_common.benchmarks.metrics import bench_metrics

@@ -31,6 +31,7 @@ from umad_common.dataflow.bus import DEFAULT_HUB, TlsConfig
 from umad_common.dataflow.certificates import operator_identity
 from umad_common.dataflow.operator import Operator, Source, UnknownOperatorError, load_operator_class
 from umad_common.dataflow.pacing import SourceParams
+from umad_common.dataflow.shm_payloads import SharedPayloads
 
 
 class TlsSpec(BaseModel):
@@ -89,13 +90,16 @@ class GraphSpec(BaseModel):
     shm_pool_mib: int | None = Field(
         None,
         ge=1,
-        description="each replica's Zenoh shared-memory pool for large messages, MiB (default Zenoh's 16); "
-        "a message that finds no room goes through the hub's socket",
+        description="each replica's Zenoh shared-memory pool for large messages, MiB (default Zenoh's 16; "
+        "with payloads in Zenoh's shared memory, `shared_payloads`, 64); a message that finds no room goes "
+        "through the hub's socket",
     )
-    shared_payloads: bool = Field(
+    shared_payloads: SharedPayloads = Field(
         True,
-        description="large payloads are written once into a shared-memory ring on the publisher's host and "
-        "Zenoh carries a reference (subscribers on other hosts fetch them); false: every payload through Zenoh",
+        description="large payloads are written once into shared memory on the publisher's host: on x86 into "
+        "a ring of the publisher's, Zenoh carrying a reference (subscribers on other hosts fetch them), on "
+        "other CPUs into Zenoh's shared memory; zenoh_shm: Zenoh's shared memory on every CPU; false: every "
+        "payload through Zenoh as it is",
     )
     direct_links: bool = Field(
         True,

@@ -11,10 +11,13 @@ A ring is a file under /dev/shm named after its publisher's pid:
     data: `capacity` bytes, written round and round; a payload never wraps (it starts over at 0)
 
 The publisher raises `reserved` before it writes a payload's bytes, so a reader that copied a
-payload out and then finds `reserved <= start + capacity` knows nothing overwrote it meanwhile
-(on x86, whose stores and loads keep their order). Subscribers copy a payload out the moment it
-arrives; the ring holds at least `SLACK_PAYLOADS` of the largest payload so far (it grows into a
-new file when a larger one comes), far more than the frames a source keeps in flight.
+payload out and then finds `reserved <= start + capacity` knows nothing overwrote it meanwhile.
+That check relies on x86's memory order (stores become visible in program order, loads are not
+reordered with older loads), which Python cannot ask for with fences; on any other CPU
+(`RING_CPUS`) no ring is made and large payloads go through Zenoh's shared memory instead
+(`shm_payloads.py`). Subscribers copy a payload out the moment it arrives; the ring holds at least
+`SLACK_PAYLOADS` of the largest payload so far (it grows into a new file when a larger one comes),
+far more than the frames a source keeps in flight.
 
 What a reference cannot reach, the publisher still serves: a subscriber on another host (or one
 that copied too late) asks the publisher's queryable for the payload, answered from the last
@@ -26,15 +29,15 @@ from __future__ import annotations
 
 import mmap
 import os
+import platform
 import re
 import secrets
 import socket
 import struct
 import threading
 from collections import OrderedDict
-from collections.abc import Callable, Collection
+from collections.abc import Collection
 from pathlib import Path
-from typing import TypeVar
 
 import zenoh
 
@@ -56,7 +59,14 @@ _RESERVED_AT = 16
 _ALIGN = 64
 _REFERENCE = struct.Struct("<QQ")  # start (in bytes ever written), length; then the ring's file name
 _RING_NAME = re.compile(r"^umad-(\d+)-([0-9a-f]+)-(\d+)\.ring$")
-T = TypeVar("T")
+# what `platform.machine()` says on a CPU with x86's memory order
+RING_CPUS = frozenset({"x86_64", "amd64", "i386", "i686", "x86"})
+
+
+def ring_is_correct_here(machine: str | None = None) -> bool:
+    """Whether this CPU (`machine`: `platform.machine()`) keeps the store and load order the
+    reader's overwrite check relies on."""
+    return (machine or platform.machine()).lower() in RING_CPUS
 
 
 def on_this_host(endpoint: str) -> bool:
@@ -113,6 +123,11 @@ class PayloadRing:
         self._head = 0
         self._kept: OrderedDict[tuple[str, int], bytes] = OrderedDict()
         self.disabled_because: str | None = None
+        if not ring_is_correct_here():
+            self.disabled_because = (
+                f"payload rings need x86's memory order and this CPU is {platform.machine()}; "
+                "large payloads go through Zenoh's shared memory"
+            )
 
     def pack(self, payload: bytes) -> bytes:
         size = len(payload)
@@ -186,9 +201,8 @@ class PayloadRing:
 
 class PayloadReader:
     """A subscriber's side: `take(payload)` returns the payload a reference points to, copied out of
-    the ring, or the payload itself when it travelled inline; `read(payload, parse)` parses it
-    where it lies instead (e.g. decodes it, copying each array out once). Both give None when the
-    ring is not reachable from here (another host) or was overwritten first: `fetch` then asks the
+    the ring, or the payload itself when it travelled inline; None when the ring is not reachable
+    from here (another host) or was overwritten while it was copied: `fetch` then asks the
     publisher. Thread-safe: Zenoh's callbacks take, another thread may forget."""
 
     def __init__(self, directory: Path = RING_DIR):
@@ -197,18 +211,12 @@ class PayloadReader:
         self._lock = threading.Lock()
 
     def take(self, payload: bytes) -> bytes | None:
-        return self.read(payload, bytes)
-
-    def read(self, payload: bytes, parse: Callable[[bytes | memoryview], T]) -> T | None:
-        """`parse` of the payload: of a view into the ring for a reference (`parse` must copy what
-        it keeps, and its result is dropped if the publisher overwrote the payload meanwhile), of
-        the payload itself when it travelled inline."""
         if not is_reference(payload):
-            return parse(payload)
+            return payload
         try:
             name, start, length = _parse(payload)
         except ValueError:
-            return parse(payload)  # not ours to judge: decoding says what is wrong with it
+            return payload  # not ours to judge: decoding says what is wrong with it
         with self._lock:
             ring = self._maps[name] if name in self._maps else self._open(name)
             if ring is None:
@@ -217,10 +225,10 @@ class PayloadReader:
             offset = start % capacity
             if length > capacity - offset:
                 return None
-            with memoryview(ring) as whole, whole[_HEADER + offset : _HEADER + offset + length] as view:
-                result = parse(view)
+            with memoryview(ring) as whole:
+                copied = bytes(whole[_HEADER + offset : _HEADER + offset + length])
             (reserved,) = struct.unpack_from("<Q", ring, _RESERVED_AT)
-            return result if start + length <= reserved <= start + capacity else None
+            return copied if start + length <= reserved <= start + capacity else None
 
     def _open(self, name: str) -> mmap.mmap | None:
         try:

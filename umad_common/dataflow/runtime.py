@@ -62,6 +62,7 @@ from umad_common.dataflow.messages import Message, MessageError, decode, encode
 from umad_common.dataflow.operator import Context, Operator, Output, Source
 from umad_common.dataflow.pacing import JoinParams
 from umad_common.dataflow.payload_ring import SWEPT_BY_LAUNCHER, PayloadReader, PayloadRing, fetch
+from umad_common.dataflow.shm_payloads import DEFAULT_POOL_MIB, ZenohShmPayloads, payload_plane
 from umad_common.dataflow.source_driver import SourceDriver
 
 log = logging.getLogger("umad.runtime")
@@ -74,11 +75,10 @@ BAD_MESSAGE_LOG_INTERVAL_S = 5.0
 
 
 class Received(NamedTuple):
-    """One input message as the subscriber took it: decoded at once, straight out of the
-    publisher's payload ring (each array copied out once) or out of what Zenoh delivered, so a busy
-    operator's queue never holds shared memory a publisher is about to reuse. A payload the ring
-    could not give (its publisher runs on another host) stays a reference until the transform loop
-    fetches it."""
+    """One input message as the subscriber took it: decoded at once, its arrays views on the bytes
+    copied out of the publisher's payload ring or out of what Zenoh delivered, so a busy operator's
+    queue never holds shared memory a publisher is about to reuse. A payload the ring could not
+    give (its publisher runs on another host) stays a reference until the transform loop fetches it."""
 
     port: str
     key: str
@@ -91,8 +91,9 @@ class Received(NamedTuple):
         stamp = sample.timestamp
         sent = None if stamp is None else stamp.get_time_as_ntp64().as_secs_f64()
         raw = sample.payload.to_bytes()
-        message = reader.read(raw, decode_or_refuse)
-        return cls(port, str(sample.key_expr), raw if message is None else message, sent, time.time())
+        payload = reader.take(raw)
+        message = raw if payload is None else decode_or_refuse(payload)
+        return cls(port, str(sample.key_expr), message, sent, time.time())
 
 
 def decode_or_refuse(payload: bytes | memoryview) -> Message | MessageError:
@@ -118,7 +119,7 @@ class OperatorRuntime:
         shared_payloads: bool = True,
     ):
         """`shared_payloads=False`: publish every payload through Zenoh even where the graph asks
-        for rings (a replica whose hub is on another host)."""
+        for shared memory (a replica whose hub is on another host)."""
         self.graph = graph
         self.replay_log = replay_log
         self.allow_truncated = allow_truncated
@@ -145,7 +146,9 @@ class OperatorRuntime:
         self.ctl_q: queue.Queue = queue.Queue()
         self.members = Membership()
         self.resend_requests: list[dict] = []  # sources: frames a restarted ordered operator needs again
-        self.ring = PayloadRing(self.keys.payload(op_id)) if graph.spec.shared_payloads and shared_payloads else None
+        plane = payload_plane(graph.spec.shared_payloads if shared_payloads else False)
+        self.ring = PayloadRing(self.keys.payload(op_id)) if plane == "ring" else None
+        self.shm = ZenohShmPayloads(graph.spec.shm_pool_mib or DEFAULT_POOL_MIB) if plane == "zenoh_shm" else None
         self.reader = PayloadReader()
         self.publishers = {
             out: session.declare_publisher(self.keys.data(op_id, out), congestion_control=zenoh.CongestionControl.BLOCK)
@@ -398,6 +401,8 @@ class OperatorRuntime:
         for port, payload in payloads:
             if self.ring is not None:
                 payload = self.ring.pack(payload)
+            elif self.shm is not None:
+                payload = self.shm.pack(payload)
             self.publishers[port].put(payload, timestamp=self.session.new_timestamp())
         if count:
             self.stats.frames_out += 1
