@@ -20,12 +20,20 @@ are scored per segmenter with the refinements mean, max, single (the paper's), s
 mean_pixel (ours), plus no mask; the others with `mean` and `mean_pixel` refinement and no mask
 only. A row whose map the log lacks (a graph without `diff_ssim_shift`) is skipped.
 The log's metadata gives the protocol (`umad_replay.protocol`): data, models, the PD network.
+
+With `workers` > 1 the first pass runs in that many processes, each reading the whole log and
+scoring its share of the weight rows (`Sweep.owns`); the first also follows the frames (the default
+row, MNAD, per scenario, diagnosis, overlays). Each configuration sees the same frames in the same
+order with the same arithmetic, so the result is the one process's, bit for bit.
 """
 
 from __future__ import annotations
 
 import heapq
+import multiprocessing
 import time
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
@@ -316,11 +324,19 @@ class SweepResult:
 
 
 class Sweep:
-    """Feed frames with `add`; every configuration's metrics stream as they come."""
+    """Feed frames with `add`; every configuration's metrics stream as they come.
 
-    def __init__(self, overlay_frames: int = 6, every: int = 1):
+    `share` (index, count): this sweep is one of `count` processes sweeping the same log, and scores
+    only the weight rows it owns (`owns`); share 0 owns the default row and also follows the frames.
+    `merge_rows` pools the others' configurations into share 0's."""
+
+    def __init__(self, overlay_frames: int = 6, every: int = 1, share: tuple[int, int] = (0, 1)):
+        index, count = share
+        if not 0 <= index < count:
+            raise ValueError(f"share {share}: expected (index, count) with 0 <= index < count")
         self.rows = weight_rows()
         self.every = every
+        self.share = share
         self.metrics: dict[Config, PixelMetrics] = {}
         self.frames: dict[Config, int] = {}
         self.baseline: PixelMetrics | None = None
@@ -344,8 +360,24 @@ class Sweep:
         metrics.update_labelled(scores, pixels)
         self.frames[config] = self.frames.get(config, 0) + 1
 
+    def owns(self, row: int) -> bool:
+        """Whether this share scores weight row `row`: share 0 the default row, the other rows by
+        turns (row index modulo the share count), skipping the default row."""
+        index, count = self.share
+        if row == self.default_row:
+            return index == 0
+        return row % count == index
+
+    @property
+    def follows_frames(self) -> bool:
+        """Whether this share keeps what is not a weight row's metrics: MNAD, per scenario, diagnosis, overlays."""
+        return self.share[0] == 0
+
     def add(self, frame: FrameRecord, segmenters: dict[str, str]) -> None:
         if frame.truth is None or frame.seq % self.every or (frame.mnad is None and not frame.diffs):
+            return
+        if not self.follows_frames:
+            self._add_rows(frame)
             return
         self.scenario_tags.setdefault(frame.run, set()).update(frame.anomaly_tags)
         self.frames_evaluated.setdefault(frame.run, []).append(frame.seq)
@@ -372,6 +404,8 @@ class Sweep:
         followed: dict[str, np.ndarray] = {}  # the default row's maps whose anomaly score the diagnosis follows
         for i in usable:
             self.rows_seen.add(i)
+            if not self.owns(i):
+                continue
             weights = {m: float(w) for m, w in self.rows[i].weights.items()}
             fused = fuse({m: maps[self.rows[i].normalization][m] for m in weights}, weights, shape)
             self._count(Config(i, None, "none"), fused, pixels)
@@ -390,6 +424,39 @@ class Sweep:
         location = dict(frame.diffs) | ({"fused": followed["fused"]} if "fused" in followed else {})
         self.diagnosis.update(frame.run, frame.seq, frame.truth, frame.semantic, location, followed)
         self._keep_overlay(frame, labels, pictures)
+
+    def _add_rows(self, frame: FrameRecord) -> None:
+        """`add` for a share that does not follow the frames: only its weight rows' metrics."""
+        if not frame.diffs:
+            return
+        shape, labels, masks = model_size_inputs(frame)
+        pixels = LabelledPixels(labels)
+        mask_sets = {op: MaskSet(op_masks) for op, op_masks in masks.items()}
+        usable = [i for i, row in enumerate(self.rows) if set(row.weights) <= set(frame.diffs)]
+        camera_rows = [i for i in usable if LIDAR not in self.rows[i].weights]
+        if self.default_row is None and camera_rows:  # as share 0 chooses it, so that both agree on who owns it
+            self.default_row = max(camera_rows, key=lambda i: (len(self.rows[i].weights), not self.rows[i].extra, i))
+        maps = {n: normalised_maps(frame.diffs, n) for n in {self.rows[i].normalization for i in usable}}
+        for i in filter(self.owns, usable):
+            weights = {m: float(w) for m, w in self.rows[i].weights.items()}
+            fused = fuse({m: maps[self.rows[i].normalization][m] for m in weights}, weights, shape)
+            self._count(Config(i, None, "none"), fused, pixels)
+            for op, mask_set in mask_sets.items():
+                for mode, refined in mask_set.refine_all(fused, self.rows[i].modes).items():
+                    self._count(Config(i, op, mode), refined, pixels)
+
+    def merge_rows(self, metrics: dict[Config, PixelMetrics], frames: dict[Config, int]) -> None:
+        """Pool another share's configurations into this one, in the order one process would have
+        met them: by row, then no mask before each segmenter (by op id), then the row's refinements."""
+        self.metrics.update(metrics)
+        self.frames.update(frames)
+
+        def met_at(config: Config) -> tuple:
+            modes = ("none", *self.rows[config.row].modes)
+            return (config.row, config.segmenter is not None, config.segmenter or "", modes.index(config.mode))
+
+        self.metrics = {config: self.metrics[config] for config in sorted(self.metrics, key=met_at)}
+        self.frames = {config: self.frames[config] for config in self.metrics}
 
     def _scenario(self, run: str, label: str) -> PixelMetrics:
         per_run = self.per_scenario.setdefault(run, {})
@@ -565,6 +632,17 @@ def second_pass(
     return {name: m.compute() for name, m in metrics.items()}
 
 
+def _sweep_share(
+    path: Path, lag: int, every: int, share: tuple[int, int]
+) -> tuple[dict[Config, PixelMetrics], dict[Config, int]]:
+    """One share's first pass in a worker process: the metrics of its weight rows."""
+    sweep = Sweep(overlay_frames=0, every=every, share=share)
+    stats = LogStats()
+    for frame in frames_from_log(path, stats, lag):
+        sweep.add(frame, stats.segmenters)
+    return sweep.metrics, sweep.frames
+
+
 def sweep_log(
     path: str | Path,
     lag: int = 32,
@@ -573,6 +651,7 @@ def sweep_log(
     components: bool = True,
     progress: bool = True,
     allow_incomplete: bool = False,
+    workers: int = 1,
 ) -> SweepResult:
     """Compute every configuration's AP/FPR95/AUROC from one log (see the module docstring); with
     `components`, a second read adds component metrics for the headline configurations and the
@@ -580,12 +659,15 @@ def sweep_log(
 
     A log whose recorder says it lacks messages is refused (LogError naming the channels and
     counts): its table would score other frames than the run's. `allow_incomplete` reports on it
-    all the same, the protocol line saying what each channel lacks."""
+    all the same, the protocol line saying what each channel lacks. `workers`: processes of the first
+    pass, each scoring a share of the weight rows (the same result, see the module docstring)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: log file not found; expected an MCAP file written by the recorder")
-    if lag < 0 or every < 1:
-        raise ValueError(f"sweep: lag must be >= 0 and every >= 1, got lag={lag}, every={every}")
+    if lag < 0 or every < 1 or workers < 1:
+        raise ValueError(
+            f"sweep: lag must be >= 0, every and workers >= 1, got lag={lag}, every={every}, workers={workers}"
+        )
     incomplete = describe_loss(recording_outcome(path))
     if incomplete and not allow_incomplete:
         raise LogError(
@@ -594,9 +676,18 @@ def sweep_log(
         )
     start = time.perf_counter()
     stats = LogStats()
-    sweep = Sweep(overlay_frames=overlay_frames, every=every)
-    for frame in tqdm(frames_from_log(path, stats, lag), desc="sweep", unit="frame", disable=not progress):
-        sweep.add(frame, stats.segmenters)
+    sweep = Sweep(overlay_frames=overlay_frames, every=every, share=(0, workers))
+    others = []
+    with ExitStack() as stack:
+        if workers > 1:  # the other shares of the weight rows, each in its own process
+            pool = stack.enter_context(
+                ProcessPoolExecutor(workers - 1, mp_context=multiprocessing.get_context("spawn"))
+            )
+            others = [pool.submit(_sweep_share, path, lag, every, (index, workers)) for index in range(1, workers)]
+        for frame in tqdm(frames_from_log(path, stats, lag), desc="sweep", unit="frame", disable=not progress):
+            sweep.add(frame, stats.segmenters)
+        for other in others:
+            sweep.merge_rows(*other.result())
     result = sweep.result(stats)
     result.protocol = run_protocol(read_metadata(path), stats.map_notes)
     if incomplete:

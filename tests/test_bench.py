@@ -99,3 +99,10 @@ def test_record_bench_runs_the_default_graph_with_and_without_a_recording(hub_en
     assert result["fps_ratio_recorded"] == pytest.approx(result["fps_recorded"] / result["fps_plain"])
     assert result["complete"] and result["log_messages"] == 20 * 4  # 20 channels, 3 frames and the end marker
     assert result["log_mib_per_frame"] > 0
+
+
+def test_train_bench_refuses_to_compare_one_process_with_itself():
+    from umad_common.benchmarks.train import bench_train
+
+    with pytest.raises(ValueError, match="--nproc 1: the bench compares one process with more"):
+        bench_train(processes=1)

@@ -431,6 +431,22 @@ def test_truncated_log_stops_at_last_readable_message(log_and_truth, tmp_path):
     assert partial.stats.messages > 0
 
 
+def test_weight_rows_shared_among_processes_give_the_one_process_result(log_and_truth):
+    result = sweep_log(log_and_truth[0], progress=False, overlay_frames=2)  # not the fixture: tests pool into it
+    shared = sweep_log(log_and_truth[0], progress=False, overlay_frames=2, workers=3)
+    assert list(shared.metrics) == list(result.metrics)  # the same configurations, met in the same order
+    for config, metrics in result.metrics.items():
+        assert np.array_equal(shared.metrics[config].hist, metrics.hist), config
+    assert shared.frames == result.frames and shared.default_row == result.default_row
+    assert shared.skipped_rows == result.skipped_rows and shared.components == result.components
+    assert shared.diagnosis == result.diagnosis
+    assert [(o.run, o.seq) for o in shared.overlays] == [(o.run, o.seq) for o in result.overlays]
+    for run, settings in result.per_scenario.items():
+        assert list(shared.per_scenario[run]) == list(settings)
+        for label, metrics in settings.items():
+            assert np.array_equal(shared.per_scenario[run][label].hist, metrics.hist), (run, label)
+
+
 def test_report_files(result, log_and_truth, tmp_path):
     index = write_report(result, tmp_path / "report", log_and_truth[0])
     out = index.parent

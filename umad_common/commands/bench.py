@@ -1,4 +1,4 @@
-"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|record|control|live|all] [--out FILE.json]`;
+"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|record|control|live|train|all] [--out FILE.json]`;
 `umad bench scaling --op world_model` replicates the world model instead of the perceptual difference.
 
 Each bench measures both sides of its ratio in the same run on the same machine, so the ratio is
@@ -24,6 +24,7 @@ BENCHES = (
     "record",
     "control",
     "live",
+    "train",
 )
 HUB_BENCHES = {"bus", "scaling", "record", "live", "control", "pipeline"}  # they start graphs on --hub
 
@@ -61,7 +62,10 @@ def add_arguments(parser):
         help="bus: only its runs through the hub over plain TCP, mutual TLS, and mutual TLS with access control",
     )
     parser.add_argument(
-        "--data", type=Path, default=None, help="segmenters, control: AnoVox drives (default: generated)"
+        "--data", type=Path, default=None, help="segmenters, control, train: AnoVox drives (default: generated)"
+    )
+    parser.add_argument(
+        "--nproc", type=int, default=2, help="train: training processes measured against one (default 2)"
     )
     parser.add_argument("--tune", action="store_true", help="segmenters: measure a parameter grid per method")
     parser.add_argument(
@@ -152,6 +156,10 @@ def _run_one(name: str, args) -> dict:
         from umad_common.benchmarks.control import bench_control
 
         return bench_control(rounds=args.frames or 20, hub=args.hub, data=args.data)
+    if name == "train":
+        from umad_common.benchmarks.train import bench_train
+
+        return bench_train(processes=args.nproc, data=args.data)
     from umad_common.benchmarks.pipeline import bench_pipeline
 
     return bench_pipeline(frames=args.frames or 30, hub=args.hub)

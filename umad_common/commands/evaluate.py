@@ -184,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
     if code not in (0, EXIT_INCOMPLETE):
         print(f"the graph failed (exit {code}); the log so far is {record}", file=sys.stderr)
         return code
-    result = sweep_log(record, allow_incomplete=args.allow_incomplete)
+    result = sweep_log(record, allow_incomplete=args.allow_incomplete, workers=os.cpu_count() or 1)
     index = write_report(result, out, record, layout=layout)
     print(f"\n{(out / 'table.md').read_text()}")
     print(f"UMAD evaluation done in {time.perf_counter() - started:.0f} s; report: {index} (and {out / 'index.html'})")

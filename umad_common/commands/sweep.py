@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 from pathlib import Path
 
 from umad_common.commands.checks import InputError, recorded_log, writable_output
@@ -41,6 +42,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "each channel lacks",
     )
     parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="processes sharing the weight rows (default: the machine's cores; the same result)",
+    )
+    parser.add_argument(
         "--overlays",
         type=int,
         default=6,
@@ -50,7 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     recorded_log(args.log, "log")
-    for flag, value, least in (("--every", args.every, 1), ("--lag", args.lag, 0), ("--overlays", args.overlays, 0)):
+    args.workers = args.workers or os.cpu_count() or 1
+    checked = (("--every", args.every, 1), ("--lag", args.lag, 0), ("--overlays", args.overlays, 0))
+    for flag, value, least in (*checked, ("--workers", args.workers, 1)):
         if value < least:
             raise InputError.of(f"{flag} {value}", f"is below {least}", f"at least {least}")
     writable_output(args.out, "--out")
@@ -65,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
         overlay_frames=args.overlays,
         components=not args.no_components,
         allow_incomplete=args.allow_incomplete,
+        workers=args.workers,
     )
     if result.stats.truncated:
         log.warning("%s", result.stats.truncated)

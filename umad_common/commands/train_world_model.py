@@ -6,6 +6,14 @@ command that trained it, held-out drives, loss history) and the resumable checkp
 MODEL.train.pt (not needed to use the model). `--config MODEL.json` trains with the configs of a
 saved model: `umad train world-model DATA --out NEW --config umad_common/assets/world_model.json`
 rebuilds the shipped one.
+
+`--nproc N` trains in N processes on this machine with torch.distributed (DDP: gloo on the CPU, NCCL
+on GPUs, one per process), `--threads` split among them; every step trains the same `--batch-size`
+windows, split over the processes. Across machines, start it with torchrun, which sets the ranks
+(RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR, MASTER_PORT) and replaces --nproc:
+`torchrun --nnodes 2 --node-rank R --nproc-per-node 2 --master-addr HOST --master-port 29500
+-m umad_common.cli train world-model DATA --out MODEL` on each machine (DATA at the same path on
+every machine; the files are written by rank 0 on its machine).
 """
 
 from __future__ import annotations
@@ -42,7 +50,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--resume", action="store_true", help="continue from MODEL.train.pt with the configs stored in it"
     )
-    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads (results depend on it)")
+    parser.add_argument(
+        "--threads", type=int, default=2, help="torch CPU threads, split among --nproc processes (results depend on it)"
+    )
+    parser.add_argument(
+        "--nproc",
+        type=int,
+        default=None,
+        help="train in N processes on this machine (torch.distributed DDP; default 1; under torchrun its own count)",
+    )
     parser.add_argument("--batch-size", type=int, default=None, help="windows per step (default from TrainConfig)")
     parser.add_argument("--sequence-length", type=int, default=None, help="model steps per window (default 8)")
     parser.add_argument(
@@ -98,6 +114,28 @@ def configs_of(args: argparse.Namespace):
     return model_config, train, epochs, seed
 
 
+def processes_of(args: argparse.Namespace, batch_size: int) -> int:
+    """How many training processes share this machine: --nproc, or torchrun's per-machine count
+    (then --nproc must be left out); each step's `batch_size` windows must split over all of them."""
+    from umad_common.training import distributed
+
+    if distributed.started_by_torchrun():
+        if args.nproc is not None:
+            raise SystemExit(
+                f"--nproc {args.nproc}: under torchrun the processes are torchrun's (--nproc-per-node); leave --nproc out"
+            )
+        processes, world = distributed.processes_on_this_machine(), int(os.environ["WORLD_SIZE"])
+    else:
+        processes = world = 1 if args.nproc is None else args.nproc
+        if processes < 1:
+            raise SystemExit(f"--nproc {processes}: expected at least 1 process")
+    if batch_size % world:
+        raise SystemExit(
+            f"--batch-size {batch_size} does not split over {world} processes; expected a multiple of {world}"
+        )
+    return processes
+
+
 def command_line(args: argparse.Namespace) -> str:
     """The command as it was given (flags left at their defaults omitted), for the model's record."""
     words = ["umad", "train", "world-model", str(args.data), "--out", str(args.out)]
@@ -105,6 +143,7 @@ def command_line(args: argparse.Namespace) -> str:
         if getattr(args, flag) is not None:
             words += ["--" + flag.replace("_", "-"), str(getattr(args, flag))]
     words += ["--threads", str(args.threads)] + (["--device", args.device] if args.device != "auto" else [])
+    words += ["--nproc", str(args.nproc)] if args.nproc is not None else []
     words += ["--lidar-head"] if args.lidar_head else []
     words += ["--resume"] if args.resume else []
     return shlex.join(words)
@@ -117,22 +156,34 @@ def run(args: argparse.Namespace) -> int:
     # On a shared machine, OpenMP threads that spin while waiting make 2 threads slower than 1;
     # passive waiting must be chosen before torch loads its OpenMP runtime.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from umad_common.models.weights import weight_paths
+    from umad_common.training import distributed
     from umad_common.training.train_world_model import train_world_model
 
     model_config, train, epochs, seed = configs_of(args)
+    processes = processes_of(args, train.batch_size)
     device = resolve_device_or_exit(args.device)
-    record = train_world_model(
-        args.data,
-        args.out,
+    training = dict(
+        data=args.data,
+        out=args.out,
         epochs=epochs,
         seed=seed,
         resume=args.resume,
-        threads=args.threads,
+        threads=max(1, args.threads // processes),
         model_config=model_config,
         train_config=train,
         command=command_line(args),
-        device=device,
+        device=str(device),
     )
+    if distributed.started_by_torchrun():
+        distributed.run_rank(train_world_model, training)
+        if int(os.environ["RANK"]) != 0:
+            return 0
+    elif processes > 1:
+        distributed.run_processes(processes, train_world_model, training)
+    else:
+        train_world_model(**training)
+    record = json.loads(weight_paths(args.out)[1].read_text())
     last = record["history"][-1]
     summary = {k: round(v, 5) if isinstance(v, float) else v for k, v in last.items()}
     print(json.dumps({"out": str(args.out), "train_seconds": record["train_seconds"], **summary}))

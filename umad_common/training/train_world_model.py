@@ -7,6 +7,11 @@ random offset and visits them in a seeded order. Each epoch ends with a checkpoi
 (MODEL.train.pt: model, optimizer, epoch, history; read back with `torch.load(weights_only=True)`)
 and the weights (MODEL.safetensors + MODEL.json), so `--resume` continues where training stopped and
 gives the same weights as an uninterrupted run with the same seed, thread count and --epochs.
+
+Across processes (`umad_common.training.distributed`), each rank computes the losses of its share of
+every step's windows (`TrainingStep`, wrapped in DistributedDataParallel, which averages the
+gradients); every rank draws the same window order and augmentations, so a step trains the same
+windows whatever the number of processes, and rank 0 writes the files.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from umad_common.models.world_model import (
     resize_route,
     save_world_model,
 )
+from umad_common.training.distributed import Rank
 
 log = logging.getLogger("umad.train.world_model")
 
@@ -132,7 +138,9 @@ def load_drive(scenario, config: WorldModelConfig) -> DriveArrays:
     )
 
 
-def load_normal_drives(data: Path, config: WorldModelConfig, holdout: int) -> tuple[list[DriveArrays], list[str]]:
+def load_normal_drives(
+    data: Path, config: WorldModelConfig, holdout: int, progress: bool = True
+) -> tuple[list[DriveArrays], list[str]]:
     """All normal drives under DATA except the last `holdout`; returns (drives, held-out names)."""
     from umad_common.datasets.anovox import find_scenarios, label_free_scenario, normal_root
 
@@ -142,7 +150,7 @@ def load_normal_drives(data: Path, config: WorldModelConfig, holdout: int) -> tu
     holdout = min(holdout, len(paths) - 1)
     train_paths, held = paths[: len(paths) - holdout], paths[len(paths) - holdout :]
     drives = []
-    for path in tqdm(train_paths, desc="loading drives", unit="drive"):
+    for path in tqdm(train_paths, desc="loading drives", unit="drive", disable=not progress):
         drives.append(load_drive(label_free_scenario(path, config.frame_step), config))
     return drives, [p.name for p in held]
 
@@ -391,6 +399,32 @@ def psnr(mse: float) -> float:
     return 10.0 * math.log10(1.0 / max(mse, 1e-10))
 
 
+class TrainingStep(torch.nn.Module):
+    """The forward pass of one training step as one module: the model filters the windows, rolls
+    its prior open loop and is scored (`world_model_loss`, and `lidar_terms` with a lidar head).
+    DistributedDataParallel hooks a module's `forward`, so wrapping this (not the model, whose
+    `observe` and `imagine` are not its forward) averages the gradients of the whole step."""
+
+    def __init__(self, model: WorldModel, train: TrainConfig, bf16: bool):
+        super().__init__()
+        self.model = model
+        self.train_config = train
+        self.bf16 = bf16
+
+    def forward(self, obs: Observation, prev_actions: torch.Tensor, views: torch.Tensor | None) -> dict:
+        """Every loss term of the windows; "loss" is the one to minimise."""
+        model, train = self.model, self.train_config
+        with torch.autocast(obs.rgb.device.type, dtype=torch.bfloat16, enabled=self.bf16):
+            result = model.observe(obs, prev_actions, sample=train.sample_posterior)
+            predicted = open_loop_predictions(model, result, prev_actions, obs.speed, train)
+            lidar_part = lidar_terms(model, result, predicted, views, train) if views is not None else {}
+        terms = world_model_loss(result, predicted.rgb, obs, train)
+        if lidar_part:
+            terms.update(lidar_part)
+            terms["loss"] = terms["loss"] + terms.pop("lidar_loss")
+        return terms
+
+
 def train_world_model(
     data: Path,
     out: Path,
@@ -402,29 +436,41 @@ def train_world_model(
     train_config: TrainConfig | None = None,
     command: str | None = None,
     device: str | torch.device = "cpu",
+    rank: Rank | None = None,
 ) -> dict:
     """Train on the normal drives under `data` on `device`; writes OUT.safetensors, OUT.json, OUT.train.pt.
 
     `command` (the command line that asked for this training) and the device are recorded in the JSON.
     Returns the JSON record written beside the weights (configs, held-out drives, loss history, time).
+    `rank`: this process's place in a training across processes (`umad_common.training.distributed`,
+    which starts the ranks); each rank runs `threads` threads and trains on its share of every
+    step's `batch_size` windows, which must split evenly over the ranks. None: one process.
     """
+    rank = rank or Rank()
     torch.set_num_threads(threads)
-    device = torch.device(device)
+    device = rank.device(torch.device(device))
     model_config = model_config or WorldModelConfig()
     train = train_config or TrainConfig()
+    if train.batch_size % rank.world:
+        raise ValueError(
+            f"batch_size {train.batch_size} does not split over {rank.world} processes; expected a multiple of "
+            f"{rank.world} (each process trains on batch_size / processes windows per step)"
+        )
     checkpoint_path = Path(str(weight_paths(out)[0].with_suffix("")) + ".train.pt")
     checkpoint = None
     if resume:
-        if not checkpoint_path.is_file():
+        if rank.writes and not checkpoint_path.is_file():
             raise FileNotFoundError(f"{checkpoint_path}: no training checkpoint to resume from")
-        checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=True)
+        if rank.writes:
+            checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=True)
+        checkpoint = rank.from_rank_zero(checkpoint)  # the files are rank 0's; other machines may not see them
         model_config = WorldModelConfig.from_dict(checkpoint["model_config"])
         train = TrainConfig(**checkpoint["train_config"])
         if checkpoint["seed"] != seed:
             raise ValueError(f"{checkpoint_path}: trained with seed {checkpoint['seed']}; resume asked for seed {seed}")
 
     started = time.perf_counter()
-    drives, heldout = load_normal_drives(Path(data), model_config, train.holdout)
+    drives, heldout = load_normal_drives(Path(data), model_config, train.holdout, progress=rank.writes)
     frames = sum(len(d) for d in drives)
     log.info("%d normal drives, %d frames in memory (held out: %s)", len(drives), frames, heldout)
 
@@ -457,31 +503,41 @@ def train_world_model(
         raise ValueError(f"{checkpoint_path}: already trained {first_epoch} epochs; ask for more than {epochs}")
     lidar = model_config.lidar_head
     model.train()
-    bar = tqdm(total=total_steps, initial=first_epoch * steps_per_epoch, desc="world model", unit="step")
+    training_step = TrainingStep(model, train, bf16)
+    if rank.distributed:
+        from torch.nn.parallel import DistributedDataParallel
+
+        training_step = DistributedDataParallel(
+            training_step, device_ids=[device.index] if device.type == "cuda" else None
+        )
+    bar = tqdm(
+        total=total_steps,
+        initial=first_epoch * steps_per_epoch,
+        desc="world model",
+        unit="step",
+        disable=not rank.writes,
+    )
+    step_seconds = 0.0  # in the training steps of this run, without loading drives or writing files
     for epoch in range(first_epoch, epochs):
         rng = np.random.default_rng([seed, epoch])
-        torch.manual_seed(seed * 100_003 + epoch)
+        torch.manual_seed(seed * 100_003 + epoch + 1_000_003 * rank.index)  # each rank its own posterior samples
         windows = epoch_windows(drives, train.sequence_length, rng)
         sums = {"loss": 0.0, "rgb_l1": 0.0, "rgb_ssim": 0.0, "rgb_mse": 0.0, "pred_mse": 0.0, "kl": 0.0}
         if lidar:
             sums.update(lidar_l1=0.0, pred_lidar_l1=0.0)
+        epoch_started = time.perf_counter()
         for step in range(steps_per_epoch):
             batch = windows[step * train.batch_size : (step + 1) * train.batch_size]
-            mirrored = list(rng.random(len(batch)) < train.mirror)
+            mirrored = list(rng.random(len(batch)) < train.mirror)  # drawn for the whole step on every rank
             lights = (
                 [Light.draw(rng) if rng.random() < train.relight else None for _ in batch] if train.relight else None
             )
+            batch, mirrored = rank.share(batch), rank.share(mirrored)
+            lights = rank.share(lights) if lights is not None else None
             obs, prev_actions = observation_batch(drives, batch, train.sequence_length, mirrored, lights)
             obs, prev_actions = scale_speed(obs, model_config).to(device), prev_actions.to(device)
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-                result = model.observe(obs, prev_actions, sample=train.sample_posterior)
-                predicted = open_loop_predictions(model, result, prev_actions, obs.speed, train)
-                views = view_batch(drives, batch, train.sequence_length, mirrored).to(device) if lidar else None
-                lidar_part = lidar_terms(model, result, predicted, views, train) if lidar else {}
-            terms = world_model_loss(result, predicted.rgb, obs, train)
-            if lidar_part:
-                terms.update(lidar_part)
-                terms["loss"] = terms["loss"] + terms.pop("lidar_loss")
+            views = view_batch(drives, batch, train.sequence_length, mirrored).to(device) if lidar else None
+            terms = training_step(obs, prev_actions, views)
             optimizer.zero_grad(set_to_none=True)
             terms["loss"].backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), train.grad_clip)
@@ -497,7 +553,8 @@ def train_world_model(
                 psnr=f"{psnr(values['rgb_mse']):.2f}",
                 pred_psnr=f"{psnr(values['pred_mse']):.2f}",
             )
-        means = {key: value / steps_per_epoch for key, value in sums.items()}
+        step_seconds += time.perf_counter() - epoch_started
+        means = rank.mean({key: value / steps_per_epoch for key, value in sums.items()})
         history.append(
             {"epoch": epoch + 1, **means, "psnr": psnr(means["rgb_mse"]), "pred_psnr": psnr(means["pred_mse"])}
         )
@@ -507,14 +564,20 @@ def train_world_model(
             "seed": seed,
             "epochs": epoch + 1,
             "threads": threads,
+            **({"processes": rank.world} if rank.distributed else {}),
             "device": str(device),
             "data": str(data),
             "training_drives": [d.name for d in drives],
             "heldout_drives": heldout,
             "training_frames": frames,
             "train_seconds": round(time.perf_counter() - started, 1),
+            "samples_per_second": round(
+                (epoch + 1 - first_epoch) * steps_per_epoch * train.batch_size / step_seconds, 3
+            ),
             "history": history,
         }
+        if not rank.writes:
+            continue
         save_world_model(model, out, record)
         torch.save(
             {
