@@ -374,6 +374,34 @@ def test_ctrl_c_stops_everything_and_leaves_no_process_or_segment(tmp_path, hub_
     assert zenoh_segments() <= before
 
 
+def test_a_stopping_graph_signals_consumers_before_their_producers(tmp_path, hub_endpoint):
+    """A producer that leaves first would let a consumer complete a frame in flight without its
+    output (what a producer stopped by `umad op stop` means); consumers must stop first."""
+    from umad_common.dataflow.graph import load_graph
+    from umad_common.dataflow.launcher import Launcher
+
+    graph = toy_graph(tmp_path, hub_endpoint)
+    launcher = Launcher(load_graph(graph), graph, quiet=True)
+    signalled = []
+
+    class Running:
+        def __init__(self, op_id: str):
+            self.op_id = op_id
+
+        def poll(self):
+            return None
+
+        def send_signal(self, sig):
+            signalled.append((self.op_id, sig))
+
+    for rep in launcher.replicas:
+        rep.proc = Running(rep.op_id)
+    launcher._signal_all(signal.SIGTERM)
+    order = [op_id for op_id, _ in signalled]
+    assert order[0] == "sink" and order[-1] == "source" and sorted(order[1:-1]) == ["double", "double", "triple"]
+    assert {sig for _, sig in signalled} == {signal.SIGTERM}
+
+
 def test_operator_that_cannot_start_fails_the_graph_without_restarts(tmp_path, hub_endpoint):
     graph = toy_graph(tmp_path, hub_endpoint)
     data = yaml.safe_load(graph.read_text())

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from umad_common import DEFAULT_GRAPH
-from umad_common.benchmarks.pipeline import joined_inputs, stage_times, topological_order, work_with_every_core_busy
+from umad_common.benchmarks.pipeline import joined_inputs, stage_times, work_with_every_core_busy
 from umad_common.dataflow.delivery import FrameJoiner, Stats
 from umad_common.dataflow.graph import load_graph
 from umad_common.dataflow.launcher_report import summary_table
@@ -61,7 +61,7 @@ def test_stage_times_weigh_each_replica_by_its_frames():
 
 def test_default_graph_in_process_order_and_joined_inputs():
     graph = load_graph(DEFAULT_GRAPH)
-    order = topological_order(graph)
+    order = graph.topological_order()
     assert sorted(order) == sorted(op.id for op in graph.spec.operators)
     for op in graph.spec.operators:
         for port in op.inputs:

@@ -123,7 +123,7 @@ def _chain_in_this_process(graph: Graph, ready: Callable[[], object] | None) -> 
     }
     if ready is not None:
         ready()
-    order = topological_order(graph)
+    order = graph.topological_order()
     source_id = graph.sources()[0]
     source = ops[source_id]
     assert isinstance(source, Source)
@@ -212,27 +212,6 @@ def joined_inputs(
         else:
             frame.inputs[port.name] = next(iter(matches.values()))
     return frame
-
-
-def topological_order(graph: Graph) -> list[str]:
-    """Operator ids, each after every operator it reads from (the graph has no cycles)."""
-    order: list[str] = []
-
-    def visit(op_id: str) -> None:
-        if op_id in order:
-            return
-        spec = graph.op(op_id)
-        for port in spec.inputs:
-            for source in spec.sources_of(port):
-                for producer, _ in graph.producers(source):
-                    visit(producer)
-        order.append(op_id)
-
-    for source in graph.sources():
-        visit(source)
-    for spec in graph.spec.operators:
-        visit(spec.id)
-    return order
 
 
 def stage_times(stats: dict[str, dict], op_id: str) -> dict[str, float | None]:

@@ -183,6 +183,26 @@ class Graph:
     def sources(self) -> list[str]:
         return [s.id for s in self.spec.operators if issubclass(self.classes[s.id], Source)]
 
+    def topological_order(self) -> list[str]:
+        """Operator ids, each after every operator it reads from (the graph has no cycles)."""
+        order: list[str] = []
+
+        def visit(op_id: str) -> None:
+            if op_id in order:
+                return
+            spec = self.op(op_id)
+            for port in spec.inputs:
+                for source in spec.sources_of(port):
+                    for producer, _ in self.producers(source):
+                        visit(producer)
+            order.append(op_id)
+
+        for source in self.sources():
+            visit(source)
+        for spec in self.spec.operators:
+            visit(spec.id)
+        return order
+
     def sinks(self) -> list[str]:
         """Operators whose outputs nobody consumes: they acknowledge frames end to end."""
         return [

@@ -260,8 +260,12 @@ class Launcher:
         cleanup_stale_shm()
 
     def _signal_all(self, sig: signal.Signals) -> None:
-        """Send `sig` to every running replica: SIGTERM to the replica, SIGKILL to its process group."""
-        for rep in list(self.replicas):
+        """Send `sig` to every running replica: SIGTERM to the replica, SIGKILL to its process group.
+        Consumers first: an operator stops before the producers it waits on leave the graph, so no
+        frame in flight is completed without a producer's output (operators started by `umad op
+        start` from another graph file, unknown to this one, count as consumers)."""
+        rank = {op_id: i for i, op_id in enumerate(self.graph.topological_order())}
+        for rep in sorted(self.replicas, key=lambda r: -rank.get(r.op_id, len(rank))):
             if rep.proc is not None and rep.proc.poll() is None:
                 try:
                     if sig == signal.SIGKILL:

@@ -463,6 +463,8 @@ class OperatorRuntime:
                     continue
             elif not live_changed and not (deadline_s and self.joiner.pending):
                 continue
+            if self.shutdown.is_set():  # a stopping graph: producers leaving now are no reason to complete a frame
+                break
             ready = self.joiner.pop_ready(self._routes()[0], deadline_s)
             self.path.deliver(ready)
 
