@@ -64,17 +64,26 @@ def test_an_overwritten_payload_is_refused_not_returned_torn(tmp_path):
     ring.close()
 
 
-def test_the_ring_grows_for_a_larger_payload_and_the_old_one_goes(tmp_path):
+def test_the_ring_grows_for_a_larger_payload_and_the_old_one_goes_at_the_next_growth(tmp_path):
     ring, reader = PayloadRing("umad/t", tmp_path), PayloadReader(tmp_path)
-    before = ring.pack(payload(INLINE_BELOW, 1))
-    old_name, old_capacity = ring.name, ring.capacity
+    small = payload(INLINE_BELOW, 1)
+    before = ring.pack(small)
+    first_name, first_capacity = ring.name, ring.capacity
     big = payload(ring.capacity // 8, 2)  # needs 32 slots: more than the ring holds
     after = ring.pack(big)
-    assert ring.name != old_name and ring.capacity > old_capacity
-    assert [p.name for p in tmp_path.iterdir()] == [ring.name]
+    assert ring.name != first_name and ring.capacity > first_capacity
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([first_name, ring.name])
     assert reader.take(after) == big
-    assert reader.take(before) is None  # unlinked before this reader mapped it: fetch from the publisher
+    assert reader.take(before) == small  # a reader mapping the old ring only now still reads it
+    latest = PayloadReader(tmp_path)
+    bigger = payload(ring.capacity // 8, 3)
+    last = ring.pack(bigger)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([ring.previous_name, ring.name])
+    assert first_name not in {ring.previous_name, ring.name}
+    assert latest.take(before) is None  # gone before this reader mapped it: fetch from the publisher
+    assert latest.take(after) == big and latest.take(last) == bigger
     ring.close()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_ring_that_cannot_be_created_sends_payloads_inline(tmp_path):

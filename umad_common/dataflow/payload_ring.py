@@ -118,6 +118,7 @@ class PayloadRing:
         self.generation = 0
         self.capacity = 0
         self.name = ""
+        self.previous_name = ""  # the ring this one grew from, kept until the next growth (see `_grow`)
         self._map: mmap.mmap | None = None
         self._view: memoryview | None = None  # writes through a memoryview copy at twice the speed of mmap's
         self._head = 0
@@ -150,7 +151,9 @@ class PayloadRing:
         return REFERENCE_TAG + _REFERENCE.pack(start, size) + self.name.encode("ascii")
 
     def _grow(self, wanted: int) -> bool:
-        """Move to a new, larger ring file (readers keep mapping the old one until they forget it)."""
+        """Move to a new, larger ring file. The old file stays until the next growth: a subscriber
+        that had not mapped it yet still reads the payloads referenced just before the move (a
+        source's first frame, whose next output is larger). Readers keep mappings until they forget them."""
         capacity = max(MIN_CAPACITY, 1 << (wanted - 1).bit_length())
         name = f"umad-{self.ident}-{self.generation + 1}.ring"
         path = self.directory / name
@@ -170,7 +173,10 @@ class PayloadRing:
         os.close(fd)
         new[: len(_MAGIC)] = _MAGIC
         struct.pack_into("<QQ", new, len(_MAGIC), capacity, 0)
-        self.close()
+        if self.previous_name:
+            (self.directory / self.previous_name).unlink(missing_ok=True)
+        self._unmap()
+        self.previous_name = self.name
         self._map, self._view, self.name, self.capacity, self._head = new, memoryview(new), name, capacity, 0
         self.generation += 1
         return True
@@ -188,14 +194,19 @@ class PayloadRing:
             query.drop()
 
     def close(self, unlink: bool = True) -> None:
-        """Unmap the ring and unlink its file (mappings others hold stay readable until they drop
-        them); `unlink=False` leaves the file to the launcher's sweep."""
+        """Unmap the ring and unlink its files, this one and the one it grew from (mappings others
+        hold stay readable until they drop them); `unlink=False` leaves them to the launcher's sweep."""
+        self._unmap()
+        if unlink:
+            for name in (self.name, self.previous_name):
+                if name:
+                    (self.directory / name).unlink(missing_ok=True)
+
+    def _unmap(self) -> None:
         if self._map is not None:
             assert self._view is not None
             self._view.release()
             self._map.close()
-            if unlink:
-                (self.directory / self.name).unlink(missing_ok=True)
             self._map = self._view = None
 
 
