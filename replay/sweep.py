@@ -376,18 +376,8 @@ class Sweep:
     def add(self, frame: FrameRecord, segmenters: dict[str, str]) -> None:
         if frame.truth is None or frame.seq % self.every or (frame.mnad is None and not frame.diffs):
             return
-        if not self.follows_frames:
-            self._add_rows(frame)
-            return
-        self.scenario_tags.setdefault(frame.run, set()).update(frame.anomaly_tags)
-        self.frames_evaluated.setdefault(frame.run, []).append(frame.seq)
-        self.truth_shapes.add(tuple(frame.truth.shape))
-        if frame.mnad is not None:
-            self.baseline = self.baseline or PixelMetrics()
-            mnad_labels = resize_nearest(frame.truth, frame.mnad.shape)
-            self.baseline.update(frame.mnad, mnad_labels)
-            self.baseline_frames += 1
-            self._scenario(frame.run, "MNAD").update(frame.mnad, mnad_labels)
+        if self.follows_frames:
+            self._follow(frame)
         if not frame.diffs:
             return
         shape, labels, masks = model_size_inputs(frame)
@@ -421,29 +411,22 @@ class Sweep:
                         if mode == "mean":
                             pictures[f"refined ({name} mean)"] = refined
                             followed[f"{name} mean"] = refined
-        location = dict(frame.diffs) | ({"fused": followed["fused"]} if "fused" in followed else {})
-        self.diagnosis.update(frame.run, frame.seq, frame.truth, frame.semantic, location, followed)
-        self._keep_overlay(frame, labels, pictures)
+        if self.follows_frames:  # the default row, whose maps these follow, is share 0's
+            location = dict(frame.diffs) | ({"fused": followed["fused"]} if "fused" in followed else {})
+            self.diagnosis.update(frame.run, frame.seq, frame.truth, frame.semantic, location, followed)
+            self._keep_overlay(frame, labels, pictures)
 
-    def _add_rows(self, frame: FrameRecord) -> None:
-        """`add` for a share that does not follow the frames: only its weight rows' metrics."""
-        if not frame.diffs:
-            return
-        shape, labels, masks = model_size_inputs(frame)
-        pixels = LabelledPixels(labels)
-        mask_sets = {op: MaskSet(op_masks) for op, op_masks in masks.items()}
-        usable = [i for i, row in enumerate(self.rows) if set(row.weights) <= set(frame.diffs)]
-        camera_rows = [i for i in usable if LIDAR not in self.rows[i].weights]
-        if self.default_row is None and camera_rows:  # as share 0 chooses it, so that both agree on who owns it
-            self.default_row = max(camera_rows, key=lambda i: (len(self.rows[i].weights), not self.rows[i].extra, i))
-        maps = {n: normalised_maps(frame.diffs, n) for n in {self.rows[i].normalization for i in usable}}
-        for i in filter(self.owns, usable):
-            weights = {m: float(w) for m, w in self.rows[i].weights.items()}
-            fused = fuse({m: maps[self.rows[i].normalization][m] for m in weights}, weights, shape)
-            self._count(Config(i, None, "none"), fused, pixels)
-            for op, mask_set in mask_sets.items():
-                for mode, refined in mask_set.refine_all(fused, self.rows[i].modes).items():
-                    self._count(Config(i, op, mode), refined, pixels)
+    def _follow(self, frame: FrameRecord) -> None:
+        """What share 0 keeps of each frame besides the weight rows: its scenario, shapes and MNAD."""
+        self.scenario_tags.setdefault(frame.run, set()).update(frame.anomaly_tags)
+        self.frames_evaluated.setdefault(frame.run, []).append(frame.seq)
+        self.truth_shapes.add(tuple(frame.truth.shape))
+        if frame.mnad is not None:
+            self.baseline = self.baseline or PixelMetrics()
+            mnad_labels = resize_nearest(frame.truth, frame.mnad.shape)
+            self.baseline.update(frame.mnad, mnad_labels)
+            self.baseline_frames += 1
+            self._scenario(frame.run, "MNAD").update(frame.mnad, mnad_labels)
 
     def merge_rows(self, metrics: dict[Config, PixelMetrics], frames: dict[Config, int]) -> None:
         """Pool another share's configurations into this one, in the order one process would have

@@ -57,7 +57,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     recorded_log(args.log, "log")
-    args.workers = args.workers or os.cpu_count() or 1
+    if args.workers is None:
+        args.workers = os.cpu_count() or 1
     checked = (("--every", args.every, 1), ("--lag", args.lag, 0), ("--overlays", args.overlays, 0))
     for flag, value, least in (*checked, ("--workers", args.workers, 1)):
         if value < least:
