@@ -17,6 +17,7 @@ problem, each naming the operator id and key at fault.
 from __future__ import annotations
 
 import fnmatch
+import graphlib
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -185,23 +186,13 @@ class Graph:
 
     def topological_order(self) -> list[str]:
         """Operator ids, each after every operator it reads from (the graph has no cycles)."""
-        order: list[str] = []
-
-        def visit(op_id: str) -> None:
-            if op_id in order:
-                return
-            spec = self.op(op_id)
-            for port in spec.inputs:
-                for source in spec.sources_of(port):
-                    for producer, _ in self.producers(source):
-                        visit(producer)
-            order.append(op_id)
-
-        for source in self.sources():
-            visit(source)
-        for spec in self.spec.operators:
-            visit(spec.id)
-        return order
+        reads_from = {
+            spec.id: {
+                op for port in spec.inputs for source in spec.sources_of(port) for op, _ in self.producers(source)
+            }
+            for spec in self.spec.operators
+        }
+        return list(graphlib.TopologicalSorter(reads_from).static_order())
 
     def sinks(self) -> list[str]:
         """Operators whose outputs nobody consumes: they acknowledge frames end to end."""
