@@ -165,7 +165,10 @@ def test_a_reader_that_cannot_map_the_ring_fetches_from_the_publisher(tmp_path, 
         reference = ring.pack(large)
         elsewhere = PayloadReader(tmp_path / "host_b")  # another host: the ring's file is not there
         assert elsewhere.take(reference) is None
-        assert fetch(subscriber, "umad/t", reference) == large
+        deadline = time.monotonic() + 10  # the queryable's declaration reaches the hub after a while
+        while (fetched := fetch(subscriber, "umad/t", reference)) is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert fetched == large
         for fill in range(100):  # the publisher keeps only its last payloads
             ring.pack(payload(INLINE_BELOW, fill))
         assert fetch(subscriber, "umad/t", reference) is None
