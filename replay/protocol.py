@@ -97,6 +97,7 @@ def run_protocol(metadata: dict[str, str], map_notes: dict[str, dict[str, Any]])
             protocol["scenario_weather"] = scenario_weathers(resolve(params["source"]))  # {} for data without it
             protocol["every"] = params.get("every", 1) * params.get("score_every", 1)  # frames per scored frame
             protocol["world_model_every"] = params.get("every", 1)  # frames per frame the world model sees
+            protocol["score_every"] = params.get("score_every", 1)  # published frames per frame marked scored
         elif kind == "world_model":
             protocol["models"]["world_model"] = model_record(resolve(params["model"]))
         elif kind == "mnad":

@@ -42,6 +42,7 @@ import numpy as np
 from tqdm import tqdm
 
 from umad_common.dataflow.mcap_log import LogError, describe_loss, read_metadata, recording_outcome
+from umad_common.dataflow.replica import one_blas_thread
 from umad_common.differences.normalization import robust
 from umad_common.metrics.components import ComponentMetrics
 from umad_common.metrics.diagnosis import Diagnosis
@@ -130,6 +131,45 @@ def normalised_maps(diffs: dict[str, np.ndarray], normalization: str) -> dict[st
     return diffs if normalization == "minmax" else {m: robust(d) for m, d in diffs.items()}
 
 
+@dataclass(frozen=True)
+class MaskLabels:
+    """A frame's labels as masks that do not overlap see them: per nonempty mask (in `MaskSet.nonempty`
+    order) its normal, anomaly and ignored pixel counts, and the labels of the pixels no mask covers."""
+
+    normal: np.ndarray
+    anomaly: np.ndarray
+    ignored: np.ndarray
+    uncovered: np.ndarray  # flat indices of the pixels no mask covers
+    uncovered_pixels: LabelledPixels
+
+
+@dataclass(frozen=True)
+class PaintedMap:
+    """A mask-refined map left undrawn: each nonempty mask's score (float64, -inf: not painted) over
+    `background` (a map, or one value everywhere). `count_into` adds to a `PixelMetrics` exactly the
+    pixels of the map `MaskSet.paint` would draw, reading one count per mask instead of every pixel."""
+
+    scores: np.ndarray
+    background: np.ndarray | np.float32
+    labels: MaskLabels
+
+    def count_into(self, metrics: PixelMetrics) -> None:
+        labels, painted = self.labels, np.isfinite(self.scores)
+        values = self.scores[painted].astype(np.float32)  # as the drawn float32 map holds them
+        metrics.update_counts(values, labels.normal[painted], labels.anomaly[painted], labels.ignored[painted].sum())
+        if np.ndim(self.background) == 0:  # every pixel no painted mask covers holds the one value
+            rest, uncovered = ~painted, labels.uncovered_pixels
+            metrics.update_counts(
+                np.array([self.background], np.float32),
+                [labels.normal[rest].sum() + uncovered.normal.size],
+                [labels.anomaly[rest].sum() + uncovered.anomaly.size],
+                labels.ignored[rest].sum() + uncovered.n_ignored,
+            )
+        else:  # every mask painted (see `MaskSet.refine_all`): the background shows where no mask is
+            background = np.asarray(self.background).reshape(-1)[labels.uncovered]
+            metrics.update_labelled(background, labels.uncovered_pixels)
+
+
 class MaskSet:
     """`refine(fused, masks, mode, uncovered="keep")` for many fused maps over the same masks.
 
@@ -139,9 +179,13 @@ class MaskSet:
     product in the same chunks unless every mask's sum is exact in float64 (then any order gives
     refine's sums); `max` is exact whatever the order; painting gives each pixel the score that
     refine's `paint_masks` paints last.
+
+    Given the frame's `labels`, masks that do not overlap (every segmenter's here) also count their
+    pixels per class once, and `refine_all(..., undrawn=True)` returns the `mean`, `max` and `single`
+    maps as `PaintedMap`s, whose metrics need one count per mask instead of every pixel.
     """
 
-    def __init__(self, masks: np.ndarray):
+    def __init__(self, masks: np.ndarray, labels: np.ndarray | None = None):
         self.masks = masks  # (K, h, w) bool
         flat = masks.reshape(masks.shape[0], masks.shape[1] * masks.shape[2])
         self.areas = flat.sum(axis=1)
@@ -151,6 +195,26 @@ class MaskSet:
         self.covered = flat.any(axis=0).reshape(masks.shape[1:])
         self.nonempty = np.flatnonzero(self.areas > 0)
         self.starts = np.searchsorted(self.owners, self.nonempty)
+        self.overlapping = self.pixels.size > int(self.covered.sum())
+        self.labels = None if labels is None or self.overlapping else self._mask_labels(labels)
+
+    def _mask_labels(self, labels: np.ndarray) -> MaskLabels:
+        flat_labels = labels.reshape(-1)
+        owner = np.full(flat_labels.size, -1, np.int64)  # per pixel: the one mask covering it, -1 none
+        owner[self.pixels] = self.owners
+
+        def count(label: int) -> np.ndarray:
+            return np.bincount(owner[flat_labels == label] + 1, minlength=self.masks.shape[0] + 1)[1:][self.nonempty]
+
+        normal, anomaly = count(0), count(1)
+        uncovered = np.flatnonzero(~self.covered.reshape(-1))
+        return MaskLabels(
+            normal=normal,
+            anomaly=anomaly,
+            ignored=self.areas[self.nonempty] - normal - anomaly,
+            uncovered=uncovered,
+            uncovered_pixels=LabelledPixels(flat_labels[uncovered]),
+        )
 
     def exact_sums(self, values: np.ndarray) -> np.ndarray | None:
         """Each nonempty mask's sum of `values` (float64 copies of float32 scores, mask by mask as in
@@ -189,21 +253,32 @@ class MaskSet:
     def paint(self, scores: np.ndarray, background: np.ndarray) -> np.ndarray:
         """`paint_masks(scores, self.masks, background)` in one pass over the mask pixels: paint_masks
         paints the finite-scored masks in stable ascending score order, so each covered pixel ends
-        with the score of its mask latest in that order."""
+        with the score of its mask latest in that order (of masks that do not overlap: its one mask)."""
+        out = np.array(background, dtype=np.float32, copy=True).reshape(-1)
+        if not self.overlapping:
+            if np.isfinite(scores[self.nonempty]).all():
+                out[self.pixels] = scores[self.owners]
+            else:
+                painted = np.isfinite(scores)[self.owners]
+                out[self.pixels[painted]] = scores[self.owners[painted]]
+            return out.reshape(background.shape)
         paint_order = np.argsort(scores, kind="stable")
         position = np.empty(scores.size, dtype=np.int64)
         position[paint_order] = np.arange(scores.size)
         position[~np.isfinite(scores)] = -1  # never painted
         last = np.full(background.size, -1, dtype=np.int64)  # per pixel: the latest painted mask's position
         np.maximum.at(last, self.pixels, position[self.owners])
-        out = np.array(background, dtype=np.float32, copy=True).reshape(-1)
         covered = last >= 0
         out[covered] = scores[paint_order][last[covered]]
         return out.reshape(background.shape)
 
-    def refine_all(self, fused: np.ndarray, modes: tuple[str, ...] = REFINE_MODES) -> dict[str, np.ndarray]:
+    def refine_all(
+        self, fused: np.ndarray, modes: tuple[str, ...] = REFINE_MODES, undrawn: bool = False
+    ) -> dict[str, np.ndarray | PaintedMap]:
         """The `modes` (of REFINE_MODES) maps of one fused map (uncovered pixels keep their score;
-        `single` gives every pixel outside the winning mask the frame's lowest score)."""
+        `single` gives every pixel outside the winning mask the frame's lowest score). With `undrawn`
+        and the frame's labels counted (`labels`), `mean`, `max` and `single` come as `PaintedMap`s
+        where every mask they paint is scored (always so for `single`, whose background is one value)."""
         fused = np.asarray(fused, dtype=np.float32)
         lowest = np.full_like(fused, fused.min())
         if self.masks.shape[0] == 0:
@@ -212,14 +287,21 @@ class MaskSet:
         mean = self.mean_scores(fused)
         single = only_the_best(mean) if {"single", "single_keep_raw"} & set(modes) else mean
         mean_map = self.paint(mean, fused) if {"mean", "mean_pixel"} & set(modes) else None
-        paint = {
-            "mean": lambda: mean_map,
-            "max": lambda: self.paint(self.max_scores(fused), fused),
-            "single": lambda: self.paint(single, lowest),
+
+        def painted(scores: np.ndarray, background: np.ndarray, one_value: bool = False) -> np.ndarray | PaintedMap:
+            kept = scores[self.nonempty]
+            if undrawn and self.labels is not None and (one_value or np.isfinite(kept).all()):
+                return PaintedMap(kept, background.flat[0] if one_value else background, self.labels)
+            return self.paint(scores, background)
+
+        refinements = {
+            "mean": lambda: painted(mean, fused) if undrawn else mean_map,
+            "max": lambda: painted(self.max_scores(fused), fused),
+            "single": lambda: painted(single, lowest, one_value=True),
             "single_keep_raw": lambda: self.paint(single, fused),
             "mean_pixel": lambda: with_pixel_share(mean_map, fused, self.covered, PIXEL_SHARE),
         }
-        return {mode: paint[mode]() for mode in modes}
+        return {mode: refinements[mode]() for mode in modes}
 
 
 @dataclass(frozen=True)
@@ -353,11 +435,14 @@ class Sweep:
         self.truth_shapes: set[tuple[int, int]] = set()
         self.diagnosis = Diagnosis()
 
-    def _count(self, config: Config, scores: np.ndarray, pixels: LabelledPixels) -> None:
+    def _count(self, config: Config, scores: np.ndarray | PaintedMap, pixels: LabelledPixels) -> None:
         metrics = self.metrics.get(config)
         if metrics is None:
             metrics = self.metrics[config] = PixelMetrics()
-        metrics.update_labelled(scores, pixels)
+        if isinstance(scores, PaintedMap):
+            scores.count_into(metrics)
+        else:
+            metrics.update_labelled(scores, pixels)
         self.frames[config] = self.frames.get(config, 0) + 1
 
     def owns(self, row: int) -> bool:
@@ -383,7 +468,7 @@ class Sweep:
         shape, labels, masks = model_size_inputs(frame)
         pixels = LabelledPixels(labels)  # split once, read by every configuration's metrics
         self.score_shapes.add(shape)
-        mask_sets = {op: MaskSet(op_masks) for op, op_masks in masks.items()}
+        mask_sets = {op: MaskSet(op_masks, labels) for op, op_masks in masks.items()}
         names = {op: masks_name(segmenters, op) for op in mask_sets}
         usable = [i for i, row in enumerate(self.rows) if set(row.weights) <= set(frame.diffs)]
         camera_rows = [i for i in usable if LIDAR not in self.rows[i].weights]
@@ -403,7 +488,8 @@ class Sweep:
                 self._scenario(frame.run, "no mask").update_labelled(fused, pixels)
                 pictures["fused"] = followed["fused"] = fused
             for op, mask_set in mask_sets.items():
-                for mode, refined in mask_set.refine_all(fused, self.rows[i].modes).items():
+                undrawn = i != self.default_row  # the default row's maps are pictured and followed
+                for mode, refined in mask_set.refine_all(fused, self.rows[i].modes, undrawn).items():
                     self._count(Config(i, op, mode), refined, pixels)
                     if i == self.default_row:
                         name = names[op]
@@ -619,6 +705,7 @@ def _sweep_share(
     path: Path, lag: int, every: int, share: tuple[int, int]
 ) -> tuple[dict[Config, PixelMetrics], dict[Config, int]]:
     """One share's first pass in a worker process: the metrics of its weight rows."""
+    one_blas_thread()
     sweep = Sweep(overlay_frames=0, every=every, share=share)
     stats = LogStats()
     for frame in frames_from_log(path, stats, lag):
@@ -662,6 +749,7 @@ def sweep_log(
     sweep = Sweep(overlay_frames=overlay_frames, every=every, share=(0, workers))
     others = []
     with ExitStack() as stack:
+        stack.enter_context(one_blas_thread())  # BLAS threads spinning beside the shares' cost twice the CPU
         if workers > 1:  # the other shares of the weight rows, each in its own process
             pool = stack.enter_context(
                 ProcessPoolExecutor(workers - 1, mp_context=multiprocessing.get_context("spawn"))

@@ -180,3 +180,19 @@ def test_bad_inputs_are_refused_with_clear_errors():
     with pytest.raises(ValueError, match="integers"):
         m.update(np.zeros(2), np.array([0.0, 1.0]))
     assert m.n_normal == 0 and m.n_anomaly == 0  # nothing half-counted
+
+
+def test_counts_per_score_equal_the_map_that_holds_those_pixels():
+    rng = np.random.default_rng(3)
+    scores = np.array([0.25, 0.7, 0.25, 1e-5], np.float32)  # a repeated score: its counts add up
+    normal, anomaly, ignored = np.array([3, 0, 2, 5]), np.array([1, 4, 0, 2]), 6
+    labels = np.concatenate([np.repeat([0] * 4, normal), np.repeat([1] * 4, anomaly), np.full(ignored, 255)])
+    values = np.concatenate([np.repeat(scores, normal), np.repeat(scores, anomaly), rng.random(ignored)])
+    via_counts, via_pixels = PixelMetrics(), PixelMetrics()
+    via_counts.update_counts(scores, normal, anomaly, ignored)
+    via_pixels.update(values, labels)
+    assert np.array_equal(via_counts.hist, via_pixels.hist) and via_counts.n_ignored == via_pixels.n_ignored == 6
+    with pytest.raises(ValueError, match="one of each per score"):
+        via_counts.update_counts(scores, normal[:3], anomaly)
+    with pytest.raises(ValueError, match="NaN"):
+        via_counts.update_counts(np.array([np.nan]), [1], [0])

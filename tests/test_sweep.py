@@ -21,8 +21,18 @@ from umad_common.differences import robust
 from umad_common.metrics.components import component_metrics
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import refine
+from umad_common.viz.headline import scored_every
 from umad_common.viz.report import write_report
-from umad_replay.sweep import REFINE_MODES, Config, MaskSet, paper_weight_rows, sweep_log, weight_rows, weights_label
+from umad_replay.sweep import (
+    REFINE_MODES,
+    Config,
+    MaskSet,
+    PaintedMap,
+    paper_weight_rows,
+    sweep_log,
+    weight_rows,
+    weights_label,
+)
 
 H, W, h, w = 16, 24, 8, 12  # camera / truth size, model size
 METRIC_OPS = {
@@ -288,6 +298,43 @@ def test_two_segmenters_of_one_method_are_named_by_their_ops():
     assert masks_name(segmenters, "segment_unsup") == "geometry (segment_unsup)"
     assert masks_name(segmenters, "segment_nosnap") == "geometry (segment_nosnap)"
     assert masks_name({"seg": "geometry"}, "seg") == "geometry"
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_undrawn_mask_maps_count_the_pixels_the_drawn_maps_hold(seed):
+    rng = np.random.default_rng(seed)
+    fused = rng.random((24, 36)).astype(np.float32)
+    fused[:4, :4] = 0.5
+    labels = rng.choice(np.array([0, 1, 255], np.uint8), size=(24, 36), p=[0.8, 0.15, 0.05])
+    regions = rng.integers(0, 7, (24, 36))  # a partition: masks that do not overlap
+    tiling = np.stack([regions == k for k in range(8)])  # mask 7 is empty
+    tiling[2, :3, :] = False  # pixels no mask covers
+    overlapping = rng.random((5, 24, 36)) < 0.3
+    with_inf = fused.copy()
+    with_inf[regions == 3] = -np.inf  # a mask whose mean is -inf: not painted
+    for masks, undrawn_expected in ((tiling, True), (overlapping, False)):
+        mask_set = MaskSet(masks, labels)
+        for score_map in (fused, with_inf):
+            with np.errstate(invalid="ignore"):  # refine's product: 0 x -inf outside the -inf mask
+                undrawn = mask_set.refine_all(score_map, undrawn=True)
+                drawn = mask_set.refine_all(score_map)
+            for mode in REFINE_MODES:
+                via_counts, via_pixels = PixelMetrics(), PixelMetrics()
+                if isinstance(undrawn[mode], PaintedMap):
+                    undrawn[mode].count_into(via_counts)
+                else:
+                    via_counts.update(undrawn[mode], labels)
+                via_pixels.update(drawn[mode], labels)
+                assert np.array_equal(via_counts.hist, via_pixels.hist), mode
+                assert via_counts.n_ignored == via_pixels.n_ignored
+            assert isinstance(undrawn["single"], PaintedMap) == undrawn_expected
+            assert isinstance(undrawn["mean"], PaintedMap) == (undrawn_expected and score_map is fused)
+
+
+def test_the_sources_scored_frames_and_the_sweeps_combine_as_their_least_common_multiple():
+    assert scored_every({"every": 2, "score_every": 2, "world_model_every": 1, "sweep_every": 2}) == 2
+    assert scored_every({"every": 6, "score_every": 2, "world_model_every": 3, "sweep_every": 5}) == 30
+    assert scored_every({"every": 2, "sweep_every": 2}) == 4  # a report from before score_every was kept
 
 
 @pytest.mark.parametrize("row", [0, 4, 5, 14])

@@ -129,6 +129,26 @@ class PixelMetrics:
             self.hist[label, : counts.size] += counts
         self.n_ignored += pixels.n_ignored
 
+    def update_counts(self, scores: np.ndarray, normal: np.ndarray, anomaly: np.ndarray, ignored: int = 0) -> None:
+        """Add pixels given as counts per score: `normal[i]` normal and `anomaly[i]` anomaly pixels
+        scored `scores[i]`, and `ignored` ignored ones; the same as `update` with a map holding those
+        pixels. For maps made of few distinct values (a mask-refined map: one score per mask).
+
+        Raises:
+            ValueError: a score is NaN, or the three arrays differ in length.
+        """
+        scores = np.asarray(scores).reshape(-1)
+        if not scores.size == len(normal) == len(anomaly):
+            raise ValueError(
+                f"{scores.size} scores, {len(normal)} normal and {len(anomaly)} anomaly counts; expected one of each per score"
+            )
+        if scores.dtype.kind in "fc" and np.isnan(scores).any():
+            raise ValueError("scores contain NaN; expected finite or infinite numbers (NaN has no rank)")
+        patterns = scores.astype(np.float16, copy=False).view(np.uint16)
+        np.add.at(self.hist[NORMAL], patterns, normal)
+        np.add.at(self.hist[ANOMALY], patterns, anomaly)
+        self.n_ignored += int(ignored)
+
     def merge(self, other: PixelMetrics) -> PixelMetrics:
         """Pool another accumulator's pixels into this one (e.g. per-run -> overall); returns self."""
         self.hist += other.hist

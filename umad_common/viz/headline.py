@@ -9,6 +9,7 @@ reference column; they were measured on another dataset with other models.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -96,8 +97,14 @@ def lowest_fpr(rows: list[dict[str, Any]], masks: str) -> dict[str, Any] | None:
 
 
 def scored_every(protocol: dict[str, Any]) -> int:
-    """k of "one frame in every k" scored: the source's sampling times the sweep's."""
-    return protocol.get("every", 1) * protocol.get("sweep_every", 1)
+    """k of "one frame in every k" scored. The sweep scores the seqs divisible by its k among those
+    the source marked scored (divisible by the source's `score_every`): the two combine as their
+    least common multiple, times the source's own sampling of the data. A report written before
+    the protocol kept `score_every` apart multiplies the source's figure by the sweep's."""
+    sweep_every = protocol.get("sweep_every", 1)
+    if "score_every" in protocol:
+        return protocol.get("world_model_every", 1) * math.lcm(protocol["score_every"], sweep_every)
+    return protocol.get("every", 1) * sweep_every
 
 
 def sampling_text(every: int) -> str:
