@@ -538,3 +538,14 @@ def test_lidar_operator_without_returns_says_so_once_and_fusion_leaves_its_map_o
     fused = fusion.process(Frame("run", 0, 0, many={"maps": maps}))["fused"]
     assert fused.meta["metrics"] == ["abs"]
     np.testing.assert_array_equal(fused.arrays["map"], abs_map.arrays["map"])
+
+
+def test_the_ssim_window_filter_gives_scipys_numbers():
+    from scipy.ndimage import correlate1d
+
+    stack = np.random.default_rng(5).random((4, 23, 31))
+    metric = SsimDifference()
+    rows = correlate1d(stack, metric.kernel, axis=1, mode="reflect")
+    np.testing.assert_allclose(
+        metric._blur(stack), correlate1d(rows, metric.kernel, axis=2, mode="reflect"), atol=1e-14
+    )

@@ -14,8 +14,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, NamedTuple, NoReturn
 
+import cv2
 import numpy as np
-from scipy.ndimage import correlate1d, distance_transform_edt
+from scipy.ndimage import distance_transform_edt
 
 
 class DifferenceInputError(ValueError):
@@ -213,9 +214,14 @@ class SsimDifference(DifferenceMetric):
         self.c2 = (0.03 * self.data_range) ** 2
 
     def _blur(self, stack: np.ndarray) -> np.ndarray:
-        """Gaussian-filter every (h, w) plane of a (k, h, w) stack; scipy's `reflect` = mirrored edges."""
-        rows = correlate1d(stack, self.kernel, axis=1, mode="reflect")
-        return correlate1d(rows, self.kernel, axis=2, mode="reflect")
+        """Gaussian-filter every (h, w) plane of a (k, h, w) float64 stack, edges mirrored (OpenCV's
+        BORDER_REFLECT, scipy's `reflect`): the same numbers as scipy's `correlate1d` along both axes
+        at 2-3x its speed."""
+        stack = np.ascontiguousarray(stack)
+        out = np.empty(stack.shape)
+        for plane, blurred in zip(stack, out, strict=True):
+            cv2.sepFilter2D(plane, cv2.CV_64F, self.kernel, self.kernel, dst=blurred, borderType=cv2.BORDER_REFLECT)
+        return out
 
     def ssim_map(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """SSIM per pixel, averaged over channels: (h, w, 3) x2 -> (h, w) float32.
@@ -252,7 +258,7 @@ class ShiftedSsimDifference(SsimDifference):
     SSIM itself and the map never exceeds Δ_SSIM), and every moment of a window pair is taken over
     the same extended pixels, so each SSIM stays in [-1, 1]. The moments of each image are filtered once;
     only the cross moment is filtered again per offset: shift 2 (25 offsets) costs about 10 SSIMs
-    (`umad bench differences`: 46 against 4.4 ms per 128 x 192 frame).
+    (`umad bench differences`: 42 against 4.1 ms per 128 x 192 frame).
     """
 
     name = "ssim_shift"
