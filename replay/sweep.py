@@ -52,7 +52,6 @@ from umad_common.refine import (
     PIXEL_SHARE,
     fuse,
     only_the_best,
-    refine,
     resize_nearest,
     with_pixel_share,
 )
@@ -602,17 +601,18 @@ def configuration_map(
     row: WeightRow,
     config: Config,
     shape: tuple[int, int],
-    masks: dict[str, np.ndarray],
+    mask_sets: dict[str, MaskSet],
 ) -> np.ndarray | None:
-    """One configuration's score map of a frame, or None when the frame lacks a map or mask it needs."""
-    if not set(row.weights) <= set(frame.diffs) or (config.segmenter is not None and config.segmenter not in masks):
+    """One configuration's score map of a frame (refined as `refine(..., uncovered="keep")` would), or
+    None when the frame lacks a map or mask it needs."""
+    if not set(row.weights) <= set(frame.diffs) or (config.segmenter is not None and config.segmenter not in mask_sets):
         return None
     float_weights = {m: float(w) for m, w in row.weights.items()}
     maps = normalised_maps({m: frame.diffs[m] for m in float_weights}, row.normalization)
     fused = fuse(maps, float_weights, shape)
     if config.segmenter is None:
         return fused
-    return refine(fused, masks[config.segmenter], mode=config.mode, uncovered="keep")
+    return mask_sets[config.segmenter].refine_all(fused, (config.mode,))[config.mode]
 
 
 def component_configs(result: SweepResult) -> dict[str, Config]:
@@ -688,9 +688,10 @@ def second_pass(
         if not frame.diffs:
             continue
         shape, labels, masks = model_size_inputs(frame)
+        mask_sets = {op: MaskSet(op_masks) for op, op_masks in masks.items()}
         score_maps: dict[Config, np.ndarray | None] = {}
         for config in {*configs.values(), *best.values()}:
-            score_maps[config] = configuration_map(frame, result.rows[config.row], config, shape, masks)
+            score_maps[config] = configuration_map(frame, result.rows[config.row], config, shape, mask_sets)
         for name, config in configs.items():
             if score_maps[config] is not None:
                 metrics[name].update(score_maps[config], labels)
