@@ -12,7 +12,7 @@
 `--protocol paper` scores every 10th frame and writes the table in the paper's layout; `quick`
 (the default) scores every 2nd frame and writes one line per configuration.
 
-example: umad eval --out umad-eval   (the built-in benchmark and the shipped models: about 4 minutes
+example: umad eval --out umad-eval   (the built-in benchmark and the shipped models: about 6 minutes
 on 2 cores); umad eval --data DIR --out OUT for your own AnoVox drives
 """
 
