@@ -24,7 +24,9 @@ The log's metadata gives the protocol (`umad_replay.protocol`): data, models, th
 With `workers` > 1 the first pass runs in that many processes, each reading the whole log and
 scoring its share of the weight rows (`Sweep.owns`); the first also follows the frames (the default
 row, MNAD, per scenario, diagnosis, overlays). Each configuration sees the same frames in the same
-order with the same arithmetic, so the result is the one process's, bit for bit.
+order with the same arithmetic, so the result is the one process's, bit for bit. The second pass
+deals the scored frames out among as many processes and puts their components back in the order of
+one read (`second_pass`).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from concurrent.futures import ProcessPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from fractions import Fraction
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +47,7 @@ from tqdm import tqdm
 from umad_common.dataflow.mcap_log import LogError, describe_loss, read_metadata, recording_outcome
 from umad_common.dataflow.replica import one_blas_thread
 from umad_common.differences.normalization import robust
-from umad_common.metrics.components import ComponentMetrics
+from umad_common.metrics.components import ComponentMetrics, frame_components
 from umad_common.metrics.diagnosis import Diagnosis
 from umad_common.metrics.pixel import LabelledPixels, PixelMetrics
 from umad_common.refine import (
@@ -669,37 +672,105 @@ def best_configs(result: SweepResult) -> dict[str, Config]:
 
 
 def second_pass(
-    path: str | Path, result: SweepResult, lag: int = 32, every: int = 1, progress: bool = True
+    path: str | Path, result: SweepResult, lag: int = 32, every: int = 1, progress: bool = True, workers: int = 1
 ) -> dict[str, dict]:
     """A second read of the log, once the first has ranked every configuration: SegmentMeIfYouCan
     component metrics for `component_configs` and MNAD, each at its best pixel-F1 threshold from the
     first pass (returned), and per scenario the figures of `best_configs` (added to
-    `result.per_scenario`: the first pass follows only the default row there)."""
-    configs = component_configs(result)
-    best = best_configs(result)
-    metrics = {name: ComponentMetrics(result.metrics[c].best_f1_threshold()) for name, c in configs.items()}
+    `result.per_scenario`: the first pass follows only the default row there).
+
+    With `workers` > 1 the scored frames are dealt out in turn among that many processes, each
+    reading the whole log; their components are put back in the order of one read, so the figures
+    are one process's."""
+    configs, best = component_configs(result), best_configs(result)
+    thresholds = {name: result.metrics[c].best_f1_threshold() for name, c in configs.items()}
     if result.baseline is not None and result.baseline.n_anomaly:
-        metrics["MNAD"] = ComponentMetrics(result.baseline.best_f1_threshold())
-    for frame in tqdm(frames_from_log(path, LogStats(), lag), desc="second pass", unit="frame", disable=not progress):
+        thresholds["MNAD"] = result.baseline.best_f1_threshold()
+    task = partial(_second_pass_share, Path(path), result.rows, configs, best, thresholds, lag, every)
+    with ExitStack() as stack:
+        others = []
+        if workers > 1:
+            pool = stack.enter_context(
+                ProcessPoolExecutor(workers - 1, mp_context=multiprocessing.get_context("spawn"))
+            )
+            others = [pool.submit(task, (index, workers), False) for index in range(1, workers)]
+        shares = [task((0, workers), progress), *(other.result() for other in others)]
+    for share in shares:
+        for run, per_run in share.per_scenario.items():
+            merged = result.per_scenario.setdefault(run, {})
+            for name in best:
+                if name in per_run:
+                    merged.setdefault(name, PixelMetrics()).merge(per_run[name])
+    components = {}
+    for name, threshold in thresholds.items():
+        in_order = sorted(
+            (frame for share in shares for frame in share.components[name]), key=lambda frame: frame.position
+        )
+        metrics = components[name] = ComponentMetrics(threshold)
+        for frame in in_order:
+            metrics.add_frame(frame.siou, frame.ppv)
+    return {name: m.compute() for name, m in components.items()}
+
+
+@dataclass
+class FrameComponents:
+    """One frame's components under one configuration: its place among the scored frames of one read."""
+
+    position: int
+    siou: np.ndarray
+    ppv: np.ndarray
+
+
+@dataclass
+class SecondPassShare:
+    components: dict[str, list[FrameComponents]]  # name -> its frames of this share
+    per_scenario: dict[str, dict[str, PixelMetrics]]  # run -> best configuration's name -> metrics
+
+
+def _second_pass_share(
+    path: Path,
+    rows: list[WeightRow],
+    configs: dict[str, Config],
+    best: dict[str, Config],
+    thresholds: dict[str, float],
+    lag: int,
+    every: int,
+    share: tuple[int, int],
+    progress: bool,
+) -> SecondPassShare:
+    """The second pass over the scored frames k, k + n, ... of one read (`share` = (k, n))."""
+    one_blas_thread()
+    index, count = share
+    out = SecondPassShare({name: [] for name in thresholds}, {})
+    position = -1
+    frames = tqdm(frames_from_log(path, LogStats(), lag), desc="second pass", unit="frame", disable=not progress)
+    for frame in frames:
         if frame.truth is None or frame.seq % every:
             continue
-        if frame.mnad is not None and "MNAD" in metrics:
-            metrics["MNAD"].update(frame.mnad, resize_nearest(frame.truth, frame.mnad.shape))
+        position += 1
+        if position % count != index:
+            continue
+        if frame.mnad is not None and "MNAD" in thresholds:
+            mnad_labels = resize_nearest(frame.truth, frame.mnad.shape)
+            siou, ppv = frame_components(frame.mnad, mnad_labels, thresholds["MNAD"])
+            out.components["MNAD"].append(FrameComponents(position, siou, ppv))
         if not frame.diffs:
             continue
         shape, labels, masks = model_size_inputs(frame)
         mask_sets = {op: MaskSet(op_masks) for op, op_masks in masks.items()}
-        score_maps: dict[Config, np.ndarray | None] = {}
-        for config in {*configs.values(), *best.values()}:
-            score_maps[config] = configuration_map(frame, result.rows[config.row], config, shape, mask_sets)
+        score_maps = {
+            config: configuration_map(frame, rows[config.row], config, shape, mask_sets)
+            for config in {*configs.values(), *best.values()}
+        }
         for name, config in configs.items():
             if score_maps[config] is not None:
-                metrics[name].update(score_maps[config], labels)
+                siou, ppv = frame_components(score_maps[config], labels, thresholds[name])
+                out.components[name].append(FrameComponents(position, siou, ppv))
         for name, config in best.items():
             if score_maps[config] is not None:
-                per_run = result.per_scenario.setdefault(frame.run, {})
+                per_run = out.per_scenario.setdefault(frame.run, {})
                 per_run.setdefault(name, PixelMetrics()).update(score_maps[config], labels)
-    return {name: m.compute() for name, m in metrics.items()}
+    return out
 
 
 def _sweep_share(
@@ -730,8 +801,8 @@ def sweep_log(
 
     A log whose recorder says it lacks messages is refused (LogError naming the channels and
     counts): its table would score other frames than the run's. `allow_incomplete` reports on it
-    all the same, the protocol line saying what each channel lacks. `workers`: processes of the first
-    pass, each scoring a share of the weight rows (the same result, see the module docstring)."""
+    all the same, the protocol line saying what each channel lacks. `workers`: processes of each pass,
+    sharing the weight rows (first) and the frames (second); the same result, see the module docstring."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: log file not found; expected an MCAP file written by the recorder")
@@ -765,6 +836,6 @@ def sweep_log(
     if incomplete:
         result.protocol["incomplete"] = incomplete
     if components:
-        result.components = second_pass(path, result, lag, every, progress)
+        result.components = second_pass(path, result, lag, every, progress, workers)
     result.seconds = time.perf_counter() - start
     return result

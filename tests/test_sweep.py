@@ -478,7 +478,7 @@ def test_truncated_log_stops_at_last_readable_message(log_and_truth, tmp_path):
     assert partial.stats.messages > 0
 
 
-def test_weight_rows_shared_among_processes_give_the_one_process_result(log_and_truth):
+def test_weight_rows_and_frames_shared_among_processes_give_the_one_process_result(log_and_truth):
     result = sweep_log(log_and_truth[0], progress=False, overlay_frames=2)  # not the fixture: tests pool into it
     shared = sweep_log(log_and_truth[0], progress=False, overlay_frames=2, workers=3)
     assert list(shared.metrics) == list(result.metrics)  # the same configurations, met in the same order

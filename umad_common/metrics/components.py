@@ -96,7 +96,10 @@ class ComponentMetrics:
 
     def update(self, scores: np.ndarray, labels: np.ndarray) -> None:
         """Add one (H, W) frame."""
-        siou, ppv = frame_components(scores, labels, self.threshold, self.min_predicted_size, self.min_truth_size)
+        self.add_frame(*frame_components(scores, labels, self.threshold, self.min_predicted_size, self.min_truth_size))
+
+    def add_frame(self, siou: np.ndarray, ppv: np.ndarray) -> None:
+        """Add one frame's components as `frame_components` gave them (e.g. in another process)."""
         self.siou.append(siou)
         self.ppv.append(ppv)
 
