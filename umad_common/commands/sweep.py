@@ -45,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--workers",
         type=int,
         default=None,
-        help="processes sharing the weight rows (default: the machine's cores; the same result)",
+        help="processes sharing the weight rows, then the frames of the component pass (default: the machine's "
+        "cores; the same result)",
     )
     parser.add_argument(
         "--overlays",
