@@ -36,6 +36,8 @@ SECONDS=0
     || { cat generate.log; exit 1; }
 "$umad" eval --data drives --out report > eval.log 2>&1 || { cat eval.log; exit 1; }
 test -s report/index.html && test -s report/results.json
+grep -Eq "^UMAD evaluation done in [0-9]+ s \(graph [0-9]+ s, sweep [0-9]+ s, report [0-9]+ s\)" eval.log \
+    || { echo "eval's last line does not name its phases:"; tail -n 1 eval.log; exit 1; }
 echo "generated one drive and evaluated it in ${SECONDS}s: $(tail -n 1 eval.log)"
 
 status=0

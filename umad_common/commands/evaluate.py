@@ -162,15 +162,20 @@ def run(args: argparse.Namespace) -> int:
 
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
+    phases: dict[str, float] = {}  # phase -> wall seconds, printed with the total
     if source is None:
+        phase_start = time.perf_counter()
         data = _builtin_benchmark(out / "benchmark", args.scenarios, args.frames)
         source = data / "anomalous" if (data / "anomalous").is_dir() else data
+        phases["generation"] = time.perf_counter() - phase_start
     graph_file = out / "graph.yaml"
     graph_file.write_text(yaml.safe_dump(_eval_graph(args, source), sort_keys=False))
     graph = checked_graph(str(graph_file), args.set, local=True, runs=True)
     record = out / "run.mcap"
     print(f"evaluating {source} -> {out}", flush=True)
+    phase_start = time.perf_counter()
     code = Launcher(graph, graph_file, args.set, record, hub=args.hub).run()
+    phases["graph"] = time.perf_counter() - phase_start
     if code == EXIT_INCOMPLETE and not args.allow_incomplete:
         print(
             f"the recorded run {record} lacks messages (see above): no table from it; rerun, or pass "
@@ -185,9 +190,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"the graph failed (exit {code}); the log so far is {record}", file=sys.stderr)
         return code
     result = sweep_log(record, allow_incomplete=args.allow_incomplete, workers=os.cpu_count() or 1)
+    phases["sweep"] = result.seconds
+    phase_start = time.perf_counter()
     index = write_report(result, out, record, layout=layout)
+    phases["report"] = time.perf_counter() - phase_start
     print(f"\n{(out / 'table.md').read_text()}")
-    print(f"UMAD evaluation done in {time.perf_counter() - started:.0f} s; report: {index} (and {out / 'index.html'})")
+    took = ", ".join(f"{phase} {seconds:.0f} s" for phase, seconds in phases.items())
+    print(
+        f"UMAD evaluation done in {time.perf_counter() - started:.0f} s ({took}); "
+        f"report: {index} (and {out / 'index.html'})"
+    )
     return 0
 
 
