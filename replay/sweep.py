@@ -489,8 +489,8 @@ class Sweep:
             if i == self.default_row:
                 self._scenario(frame.run, "no mask").update_labelled(fused, pixels)
                 pictures["fused"] = followed["fused"] = fused
+            undrawn = i != self.default_row  # the default row's maps are pictured and followed
             for op, mask_set in mask_sets.items():
-                undrawn = i != self.default_row  # the default row's maps are pictured and followed
                 for mode, refined in mask_set.refine_all(fused, self.rows[i].modes, undrawn).items():
                     self._count(Config(i, op, mode), refined, pixels)
                     if i == self.default_row:
@@ -690,9 +690,7 @@ def second_pass(
     with ExitStack() as stack:
         others = []
         if workers > 1:
-            pool = stack.enter_context(
-                ProcessPoolExecutor(workers - 1, mp_context=multiprocessing.get_context("spawn"))
-            )
+            pool = share_pool(stack, workers)
             others = [pool.submit(task, (index, workers), False) for index in range(1, workers)]
         shares = [task((0, workers), progress), *(other.result() for other in others)]
     for share in shares:
@@ -739,7 +737,6 @@ def _second_pass_share(
     progress: bool,
 ) -> SecondPassShare:
     """The second pass over the scored frames k, k + n, ... of one read (`share` = (k, n))."""
-    one_blas_thread()
     index, count = share
     out = SecondPassShare({name: [] for name in thresholds}, {})
     position = -1
@@ -777,7 +774,6 @@ def _sweep_share(
     path: Path, lag: int, every: int, share: tuple[int, int]
 ) -> tuple[dict[Config, PixelMetrics], dict[Config, int]]:
     """One share's first pass in a worker process: the metrics of its weight rows."""
-    one_blas_thread()
     sweep = Sweep(overlay_frames=0, every=every, share=share)
     stats = LogStats()
     for frame in frames_from_log(path, stats, lag):
@@ -820,22 +816,26 @@ def sweep_log(
     stats = LogStats()
     sweep = Sweep(overlay_frames=overlay_frames, every=every, share=(0, workers))
     others = []
-    with ExitStack() as stack:
-        stack.enter_context(one_blas_thread())  # BLAS threads spinning beside the shares' cost twice the CPU
+    with one_blas_thread(), ExitStack() as stack:  # share 0 here, beside the other shares' processes
         if workers > 1:  # the other shares of the weight rows, each in its own process
-            pool = stack.enter_context(
-                ProcessPoolExecutor(workers - 1, mp_context=multiprocessing.get_context("spawn"))
-            )
+            pool = share_pool(stack, workers)
             others = [pool.submit(_sweep_share, path, lag, every, (index, workers)) for index in range(1, workers)]
         for frame in tqdm(frames_from_log(path, stats, lag), desc="sweep", unit="frame", disable=not progress):
             sweep.add(frame, stats.segmenters)
         for other in others:
             sweep.merge_rows(*other.result())
-    result = sweep.result(stats)
-    result.protocol = run_protocol(read_metadata(path), stats.map_notes)
-    if incomplete:
-        result.protocol["incomplete"] = incomplete
-    if components:
-        result.components = second_pass(path, result, lag, every, progress, workers)
+        result = sweep.result(stats)
+        result.protocol = run_protocol(read_metadata(path), stats.map_notes)
+        if incomplete:
+            result.protocol["incomplete"] = incomplete
+        if components:
+            result.components = second_pass(path, result, lag, every, progress, workers)
     result.seconds = time.perf_counter() - start
     return result
+
+
+def share_pool(stack: ExitStack, workers: int) -> ProcessPoolExecutor:
+    """The processes of shares 1 .. workers - 1 (share 0 is the caller's), each with one BLAS thread:
+    BLAS threads spinning beside the other shares' cost twice the CPU."""
+    spawn = multiprocessing.get_context("spawn")
+    return stack.enter_context(ProcessPoolExecutor(workers - 1, mp_context=spawn, initializer=one_blas_thread))
