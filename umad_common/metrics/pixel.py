@@ -46,6 +46,13 @@ def _value_order() -> tuple[np.ndarray, np.ndarray]:
 _RANK_OF_PATTERN, _DISTINCT_VALUES = _value_order()
 
 
+def _float16_patterns(scores: np.ndarray) -> np.ndarray:
+    """The flat scores' float16 bit patterns; NaN refused (ValueError)."""
+    if scores.dtype.kind in "fc" and np.isnan(scores).any():
+        raise ValueError("scores contain NaN; expected finite or infinite numbers (NaN has no rank)")
+    return scores.reshape(-1).astype(np.float16, copy=False).view(np.uint16)
+
+
 class LabelledPixels:
     """One frame's labels checked and split by class once: the flat indices of its normal and its
     anomaly pixels and the count of ignored ones. The sweep scores ~200 maps per frame over the same
@@ -121,9 +128,7 @@ class PixelMetrics:
         scores = np.asarray(scores)
         if scores.size != pixels.size:
             raise ValueError(f"{scores.size} scores for {pixels.size} labelled pixels; expected one score per pixel")
-        if scores.dtype.kind in "fc" and np.isnan(scores).any():
-            raise ValueError("scores contain NaN; expected finite or infinite numbers (NaN has no rank)")
-        patterns = scores.reshape(-1).astype(np.float16, copy=False).view(np.uint16)
+        patterns = _float16_patterns(scores)
         for label, index in ((NORMAL, pixels.normal), (ANOMALY, pixels.anomaly)):
             counts = np.bincount(patterns[index])  # as long as the highest pattern present, not 65,536
             self.hist[label, : counts.size] += counts
@@ -142,9 +147,7 @@ class PixelMetrics:
             raise ValueError(
                 f"{scores.size} scores, {len(normal)} normal and {len(anomaly)} anomaly counts; expected one of each per score"
             )
-        if scores.dtype.kind in "fc" and np.isnan(scores).any():
-            raise ValueError("scores contain NaN; expected finite or infinite numbers (NaN has no rank)")
-        patterns = scores.astype(np.float16, copy=False).view(np.uint16)
+        patterns = _float16_patterns(scores)
         np.add.at(self.hist[NORMAL], patterns, normal)
         np.add.at(self.hist[ANOMALY], patterns, anomaly)
         self.n_ignored += int(ignored)
