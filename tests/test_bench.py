@@ -50,6 +50,7 @@ def test_bus_bench_measures_the_runtime_against_bare_zenoh_one_process_and_a_sec
     assert bus["fps_ratio_bus_through_zenoh_over_bare_zenoh"] == pytest.approx(
         bus["bus_window_8_through_zenoh"]["fps"] / bus["bare_zenoh_window_8"]["fps"]
     )
+    assert len(bus["fps_ratio_bus_through_zenoh_over_bare_zenoh_per_round"]) == 3
     assert bus["fps_ratio_bus_over_bus_through_zenoh"] == pytest.approx(
         bus["bus_window_8"]["fps"] / bus["bus_window_8_through_zenoh"]["fps"]
     )

@@ -24,7 +24,8 @@ Between in-process and the bus, the floor of a dataflow that moves its payloads 
 same three processes doing the same work on plain Zenoh sessions (`bare_zenoh`: a publisher, a
 subscriber read on the main thread, the sink's acks straight to the source), without the runtime's
 joins, ordering, cache, stats or membership. The bus through Zenoh against bare Zenoh is what the
-runtime costs; bare Zenoh against in-process is what that transport costs, whatever runs on it."""
+runtime costs (the two measured in alternating rounds, `runtime_against_bare_zenoh`); bare Zenoh
+against in-process is what that transport costs, whatever runs on it."""
 
 from __future__ import annotations
 
@@ -359,6 +360,27 @@ def bench_security(frames: int, size_bytes: int, hub: str, window: int = 8, roun
     }
 
 
+def runtime_against_bare_zenoh(
+    frames: int, size_bytes: int, hub: str, shm_pool_mib: int | None, rounds: int = 3
+) -> tuple[dict, dict, list[float]]:
+    """Bare Zenoh and the bus through Zenoh (`shared_payloads: false`) at window 8, in `rounds` rounds
+    whose order alternates, so load from elsewhere and the machine's drift fall on both alike: per
+    side the median over rounds of each figure, and each round's frames/s ratio (bus over bare)."""
+    runs: dict[str, list[dict]] = {"bare": [], "bus": []}
+    for round_index in range(rounds):
+        for side in ("bare", "bus") if round_index % 2 == 0 else ("bus", "bare"):
+            if side == "bare":
+                runs[side].append(bare_zenoh(frames, size_bytes, hub, window=8))
+            else:
+                runs[side].append(
+                    over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib, shared_payloads=False)
+                )
+    keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame")
+    median = {side: {k: float(np.median([run[k] for run in done])) for k in keep} for side, done in runs.items()}
+    per_round = [bus["fps"] / bare["fps"] for bus, bare in zip(runs["bus"], runs["bare"], strict=True)]
+    return median["bare"], median["bus"], per_round
+
+
 def bench_bus(
     frames: int = 2000,
     size_bytes: int = 1 << 20,
@@ -374,11 +396,10 @@ def bench_bus(
     if security_only:
         return {"frames": frames, "frame_bytes": size_bytes, "security": security}
     local = in_process(frames, size_bytes)
-    bare = bare_zenoh(frames, size_bytes, hub, window=8)
+    bare, through_zenoh, runtime_share = runtime_against_bare_zenoh(frames, size_bytes, hub, shm_pool_mib)
     bus = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib)
     peer = against_dora(frames, size_bytes, bus) if against == "dora" else {}
     zenoh_shm = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib, shared_payloads="zenoh_shm")
-    through_zenoh = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib, shared_payloads=False)
     through_hub = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib, direct_links=False)
     bus1 = over_bus(frames, size_bytes, hub, window=1, shm_pool_mib=shm_pool_mib)
     keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame")
@@ -400,6 +421,7 @@ def bench_bus(
         "fps_ratio_bus_over_bus_through_hub": bus["fps"] / through_hub["fps"],
         "fps_ratio_bare_zenoh_over_in_process": bare["fps"] / local["fps"],
         "fps_ratio_bus_through_zenoh_over_bare_zenoh": through_zenoh["fps"] / bare["fps"],
+        "fps_ratio_bus_through_zenoh_over_bare_zenoh_per_round": runtime_share,
         "p50_ratio_bus_window_1_over_in_process": bus1["p50_ms"] / local["p50_ms"],
         # two 1 MiB hops (source -> relay -> sink); the small ack back to the source is charged to them
         "p50_ms_added_per_hop_window_1": (bus1["p50_ms"] - local["p50_ms"]) / 2,
