@@ -174,6 +174,7 @@ def over_bus(
 
 
 BARE_READY_TIMEOUT_S = 30.0
+KEPT = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame")  # the figures a side of the bench reports
 
 
 def bare_zenoh(frames: int, size_bytes: int, hub: str, window: int) -> dict:
@@ -337,8 +338,7 @@ def bench_security(frames: int, size_bytes: int, hub: str, window: int = 8, roun
             for mode in SECURITY_MODES[turn:] + SECURITY_MODES[:turn]:
                 endpoint, security = settings[mode]
                 runs[mode].append(over_bus(frames, size_bytes, endpoint, window, **through_sockets, security=security))
-    keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame", "hub_cpu_ms_per_frame")
-    median = {mode: {k: float(np.median([run[k] for run in done])) for k in keep} for mode, done in runs.items()}
+    median = {mode: medians(done, (*KEPT, "hub_cpu_ms_per_frame")) for mode, done in runs.items()}
 
     def per_round(mode: str, field: str) -> list[float]:
         return [a[field] / b[field] for a, b in zip(runs[mode], runs["tcp"], strict=True)]
@@ -375,10 +375,13 @@ def runtime_against_bare_zenoh(
                 runs[side].append(
                     over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib, shared_payloads=False)
                 )
-    keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame")
-    median = {side: {k: float(np.median([run[k] for run in done])) for k in keep} for side, done in runs.items()}
     per_round = [bus["fps"] / bare["fps"] for bus, bare in zip(runs["bus"], runs["bare"], strict=True)]
-    return median["bare"], median["bus"], per_round
+    return medians(runs["bare"], KEPT), medians(runs["bus"], KEPT), per_round
+
+
+def medians(runs: list[dict], figures: tuple[str, ...]) -> dict[str, float]:
+    """Each of `figures` as its median over `runs` (one round's result each)."""
+    return {figure: float(np.median([run[figure] for run in runs])) for figure in figures}
 
 
 def bench_bus(
@@ -402,19 +405,18 @@ def bench_bus(
     zenoh_shm = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib, shared_payloads="zenoh_shm")
     through_hub = over_bus(frames, size_bytes, hub, window=8, shm_pool_mib=shm_pool_mib, direct_links=False)
     bus1 = over_bus(frames, size_bytes, hub, window=1, shm_pool_mib=shm_pool_mib)
-    keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame")
     return {
         "frames": frames,
         "frame_bytes": size_bytes,
         "shm_pool_mib": shm_pool_mib,
         "in_process": local,
         "bare_zenoh_window_8": bare,
-        "bus_window_8": {k: bus[k] for k in keep},
+        "bus_window_8": {k: bus[k] for k in KEPT},
         **peer,
-        "bus_window_8_zenoh_shm": {k: zenoh_shm[k] for k in keep},
-        "bus_window_8_through_zenoh": {k: through_zenoh[k] for k in keep},
-        "bus_window_8_through_hub": {k: through_hub[k] for k in keep},
-        "bus_window_1": {k: bus1[k] for k in keep},
+        "bus_window_8_zenoh_shm": {k: zenoh_shm[k] for k in KEPT},
+        "bus_window_8_through_zenoh": {k: through_zenoh[k] for k in KEPT},
+        "bus_window_8_through_hub": {k: through_hub[k] for k in KEPT},
+        "bus_window_1": {k: bus1[k] for k in KEPT},
         "fps_ratio_bus_over_in_process": bus["fps"] / local["fps"],
         "fps_ratio_bus_over_bus_through_zenoh": bus["fps"] / through_zenoh["fps"],
         "fps_ratio_bus_over_bus_zenoh_shm": bus["fps"] / zenoh_shm["fps"],
@@ -440,7 +442,7 @@ def against_dora(frames: int, size_bytes: int, bus: dict) -> dict:
     if missing:
         print(missing, flush=True)
         return {"dora_window_8": missing}
-    keep = ("fps", "p50_ms", "p99_ms", "cpu_ms_per_frame", "daemon_cpu_ms_per_frame", "lost_frames")
+    keep = (*KEPT, "daemon_cpu_ms_per_frame", "lost_frames")
     lossless = over_dora(frames, size_bytes, window=8)
     blocking = over_dora(frames, size_bytes, window=8, lossless=False)
     return {
