@@ -23,6 +23,8 @@ import logging
 import os
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import yaml
@@ -164,18 +166,16 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     phases: dict[str, float] = {}  # phase -> wall seconds, printed with the total
     if source is None:
-        phase_start = time.perf_counter()
-        data = _builtin_benchmark(out / "benchmark", args.scenarios, args.frames)
+        with timed(phases, "generation"):
+            data = _builtin_benchmark(out / "benchmark", args.scenarios, args.frames)
         source = data / "anomalous" if (data / "anomalous").is_dir() else data
-        phases["generation"] = time.perf_counter() - phase_start
     graph_file = out / "graph.yaml"
     graph_file.write_text(yaml.safe_dump(_eval_graph(args, source), sort_keys=False))
     graph = checked_graph(str(graph_file), args.set, local=True, runs=True)
     record = out / "run.mcap"
     print(f"evaluating {source} -> {out}", flush=True)
-    phase_start = time.perf_counter()
-    code = Launcher(graph, graph_file, args.set, record, hub=args.hub).run()
-    phases["graph"] = time.perf_counter() - phase_start
+    with timed(phases, "graph"):
+        code = Launcher(graph, graph_file, args.set, record, hub=args.hub).run()
     if code == EXIT_INCOMPLETE and not args.allow_incomplete:
         print(
             f"the recorded run {record} lacks messages (see above): no table from it; rerun, or pass "
@@ -191,9 +191,8 @@ def run(args: argparse.Namespace) -> int:
         return code
     result = sweep_log(record, allow_incomplete=args.allow_incomplete, workers=os.cpu_count() or 1)
     phases["sweep"] = result.seconds
-    phase_start = time.perf_counter()
-    index = write_report(result, out, record, layout=layout)
-    phases["report"] = time.perf_counter() - phase_start
+    with timed(phases, "report"):
+        index = write_report(result, out, record, layout=layout)
     print(f"\n{(out / 'table.md').read_text()}")
     took = ", ".join(f"{phase} {seconds:.0f} s" for phase, seconds in phases.items())
     print(
@@ -201,6 +200,16 @@ def run(args: argparse.Namespace) -> int:
         f"report: {index} (and {out / 'index.html'})"
     )
     return 0
+
+
+@contextmanager
+def timed(phases: dict[str, float], phase: str) -> Iterator[None]:
+    """Record the wall seconds of the block as `phases[phase]`."""
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        phases[phase] = time.perf_counter() - start
 
 
 def every_and_layout(protocol: str, every: int | None) -> tuple[int, str]:
