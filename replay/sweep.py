@@ -221,14 +221,15 @@ class MaskSet:
     def exact_sums(self, values: np.ndarray) -> np.ndarray | None:
         """Each nonempty mask's sum of `values` (float64 copies of float32 scores, mask by mask as in
         `pixels`), or None unless every sum is exact in any order: a mask's values are all multiples of
-        its smallest nonzero magnitude's float32 spacing q, so every partial sum is one below
-        area x largest magnitude, exact while that stays under 2**53 q (checked with a factor 2 to spare for the rounded bound)."""
+        its smallest nonzero magnitude's float32 spacing q, so every partial sum, in any order, is a
+        multiple of q no larger than the sum of the magnitudes, exact while that stays under 2**53 q
+        (checked with a factor 2 to spare for the rounded bound)."""
         magnitudes = np.abs(values)
-        largest = np.maximum.reduceat(magnitudes, self.starts)
+        bound = np.add.reduceat(magnitudes, self.starts)
         smallest = np.minimum.reduceat(np.where(magnitudes > 0, magnitudes, np.inf), self.starts)
         all_zero = np.isinf(smallest)
         spacing = np.spacing(np.where(all_zero, 1.0, smallest).astype(np.float32)).astype(np.float64)
-        if not np.all(all_zero | (largest * self.areas[self.nonempty] < 2.0**52 * spacing)):
+        if not np.all(all_zero | (bound < 2.0**52 * spacing)):
             return None
         return np.add.reduceat(values, self.starts)
 

@@ -730,9 +730,11 @@ def test_mask_set_is_bit_identical_to_refine(seed):
     coarse = np.round(fused * 1024) / 1024  # multiples of 2**-10: every mask's sum is exact
     tiny = fused.copy()
     tiny[:, ::5] = 1e-30  # in every mask: no exact sums, refine's product
+    peaked = np.full((24, 36), 2.0**-30, np.float32)  # a tile's sum is exact though area x largest is not
+    peaked[0, ::6] = 0.25  # one peak per tile: sum 0.25 + 143 * 2**-30 < 2**52 * spacing(2**-30) = 0.5 < 144 * 0.25
     for masks in (overlapping, tiling, np.zeros((0, 24, 36), bool)):
         mask_set = MaskSet(masks)
-        for score_map in (fused, coarse, tiny):
+        for score_map in (fused, coarse, tiny, peaked):
             refined = mask_set.refine_all(score_map)
             for mode in REFINE_MODES:
                 expected = refine(score_map, masks, mode=mode, uncovered="keep")
@@ -744,3 +746,5 @@ def test_mask_set_is_bit_identical_to_refine(seed):
             }
             assert mask_set.exact_sums(pixel_values["coarse"]) is not None
             assert mask_set.exact_sums(pixel_values["tiny"]) is None
+    peaked_values = peaked.astype(np.float64).reshape(-1)[MaskSet(tiling).pixels]
+    assert MaskSet(tiling).exact_sums(peaked_values) is not None
