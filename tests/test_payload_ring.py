@@ -257,7 +257,9 @@ def test_a_payload_in_zenohs_shared_memory_reaches_a_subscriber_whole_and_a_full
     received = []
     try:
         listener = subscriber.declare_subscriber("umad/t/x", lambda sample: received.append(sample.payload.to_bytes()))
-        put = publisher.declare_publisher("umad/t/x")
+        put = publisher.declare_publisher(  # as the runtime's: a busy machine must not drop a sample
+            "umad/t/x", congestion_control=zenoh.CongestionControl.BLOCK
+        )
         deadline = time.monotonic() + 10
         while not put.matching_status.matching and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -268,6 +270,7 @@ def test_a_payload_in_zenohs_shared_memory_reaches_a_subscriber_whole_and_a_full
         assert shm.pack(payload(100)) == payload(100)  # small ones travel as they are
         for each in packed:
             put.put(each)
+        deadline = time.monotonic() + 30
         while len(received) < len(sent) and time.monotonic() < deadline:
             time.sleep(0.01)
         assert received == sent
