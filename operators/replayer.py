@@ -1,8 +1,11 @@
-"""Replayer: the graph's source. Publishes AnoVox scenarios (either layout) frame by frame.
+"""Replayer: the graph's source. Publishes drives frame by frame: AnoVox scenarios (either layout),
+ROS 2 bags and Foxglove MCAP recordings (`umad_common.datasets.drive`), or an MCAP log of an earlier
+run, byte for byte.
 
-One run per scenario folder (run = folder name), seq 0, 1, 2, ... over the sampled frames, stamps at
-the recording's 10 Hz (frame index x 100 ms, so sampling keeps real time). Pacing (`lossless` with a
-window of unacked frames, or `realtime`) is done by the runtime from the `SourceParams` fields.
+One run per drive (run = the drive's name: its folder, or a bare recording's file name), seq 0, 1,
+2, ... over the sampled frames. Stamps: a recording's own (its camera messages' log times); AnoVox's
+10 Hz (frame index x 100 ms, so sampling keeps real time). Pacing (`lossless` with a window of unacked
+frames, or `realtime`) is done by the runtime from the `SourceParams` fields.
 """
 
 from __future__ import annotations
@@ -14,10 +17,18 @@ from pydantic import BaseModel, Field
 
 from umad_common.dataflow import Context, Output, Source, SourceFrame, SourceParams
 from umad_common.dataflow.log_source import recorded_frame, recorded_frames
-from umad_common.datasets.anovox import AnoVoxFrame, AnoVoxScenario, DatasetError, find_scenarios
+from umad_common.datasets.drive import (
+    UMAD_LOG_PROFILE,
+    DatasetError,
+    Drive,
+    DriveFrame,
+    drive_name,
+    find_drives,
+    mcap_profile,
+    open_drive,
+)
 
 ROUTE_SHAPE = (192, 192)
-RECORDING_PERIOD_NS = 100_000_000  # AnoVox and the synthetic world record at 10 Hz
 
 
 class Replayer(Source):
@@ -27,8 +38,15 @@ class Replayer(Source):
     class Params(SourceParams):
         source: str = Field(
             "data/synthetic/anomalous",
-            description="a Scenario_* folder, a folder searched recursively for them, or an MCAP log of an earlier run",
+            description="drives: an AnoVox Scenario_* folder, a ROS 2 bag (rosbag2 folder, .mcap or .db3), an MCAP "
+            "with Foxglove schemas, or a folder searched for them; or an MCAP log of an earlier run",
         )
+        topics: str | None = Field(
+            None,
+            description="recordings: the topic of each role, `camera=/a,lidar=/b,odometry=/c,control=/d,labels=/e`; "
+            "roles not named are chosen by type (`umad data info` shows the choice)",
+        )
+        allow_truncated: bool = Field(False, description="read a recording cut off by a crash up to the damage")
         every: int = Field(1, ge=1, description="publish every k-th frame of each scenario")
         score_every: int = Field(
             1,
@@ -36,7 +54,7 @@ class Replayer(Source):
             description="score every k-th published frame (seq % k == 0); the others carry meta `skip`: the "
             "world model still steps on them, every other operator passes them on without computing",
         )
-        scenarios: list[str] | None = Field(None, description="keep only scenarios with these folder names (None: all)")
+        scenarios: list[str] | None = Field(None, description="keep only the drives with these names (None: all)")
         max_frames: int | None = Field(
             None, ge=1, description="at most this many frames per run after sampling (None: all)"
         )
@@ -48,29 +66,37 @@ class Replayer(Source):
     def __init__(self, params: BaseModel | dict | None = None, context: Context | None = None):
         super().__init__(params, context)
         root = self.context.resolve(self.params.source)
-        self.log_path = root if root.suffix == ".mcap" else None
-        self.scenarios: dict[str, AnoVoxScenario] = {}
-        self._run_cache: dict = {}  # an MCAP source: the frames of the run a rewind asked for
+        is_log = root.suffix == ".mcap" and (not root.is_file() or mcap_profile(root) == UMAD_LOG_PROFILE)
+        self.log_path = root if is_log else None
+        self.scenarios: dict[str, Drive] = {}
+        self._run_cache: dict = {}  # an MCAP log source: the frames of the run a rewind asked for
         if self.log_path is not None:
             if not root.is_file():
                 raise DatasetError(f"{root}: MCAP log not found")
             return
-        paths = find_scenarios(root)
+        paths = find_drives(root)
         if self.params.scenarios is not None:
             wanted = set(self.params.scenarios)
-            missing = sorted(wanted - {p.name for p in paths})
+            missing = sorted(wanted - {drive_name(p) for p in paths})
             if missing:
-                raise DatasetError(f"{root}: scenarios {missing} not found; available: {sorted(p.name for p in paths)}")
-            paths = [p for p in paths if p.name in wanted]
+                raise DatasetError(f"{root}: drives {missing} not found; available: {sorted(map(drive_name, paths))}")
+            paths = [p for p in paths if drive_name(p) in wanted]
         if not paths:
-            raise DatasetError(f"{root}: no AnoVox scenarios (Scenario_* folders with RGB-CAM... or RGB_IMG) found")
-        names = [p.name for p in paths]
+            raise DatasetError(
+                f"{root}: no drives found; expected AnoVox Scenario_* folders, ROS 2 bags or Foxglove MCAP recordings"
+            )
+        names = [drive_name(p) for p in paths]
         if len(set(names)) != len(names):
             twice = sorted({n for n in names if names.count(n) > 1})
             raise DatasetError(
-                f"{root}: scenario names {twice} occur more than once; runs are named by folder, so point at one copy"
+                f"{root}: drive names {twice} occur more than once; runs are named by drive, so point at one copy"
             )
-        self.scenarios = {p.name: AnoVoxScenario(p, every=self.params.every) for p in paths}
+        p = self.params
+        for path in paths:
+            drive = open_drive(path, p.every, p.topics, allow_truncated=p.allow_truncated)
+            self.scenarios[drive.name] = drive
+            for note in drive.notes():
+                self.context.log.info("replayer: drive %s: %s", drive.name, note)
 
     def run_length(self, run: str) -> int:
         """Frames published for a run (after sampling and max_frames)."""
@@ -100,17 +126,16 @@ class Replayer(Source):
             raise KeyError(f"run {run!r} is not one of this replayer's scenarios {sorted(self.scenarios)}")
         if not 0 <= seq < self.run_length(run):
             raise IndexError(f"seq {seq} out of range for run {run!r} with {self.run_length(run)} frames")
-        scenario = self.scenarios[run]
-        stamp_ns = seq * scenario.every * RECORDING_PERIOD_NS  # AnoVox frames are 10 Hz apart
+        drive = self.scenarios[run]
         scored = seq % self.params.score_every == 0
-        return SourceFrame(run, seq, stamp_ns, frame_outputs(scenario[seq], run, scenario.sensors, scored))
+        return SourceFrame(run, seq, drive.stamp_ns(seq), frame_outputs(drive[seq], run, drive.sensors, scored))
 
 
 def frame_outputs(
-    frame: AnoVoxFrame, scenario: str, sensors: dict | None = None, scored: bool = True
+    frame: DriveFrame, scenario: str, sensors: dict | None = None, scored: bool = True
 ) -> dict[str, Output]:
     """The five topics of one frame; absent modalities become empty or zero arrays. `sensors` (the
-    scenario's sensor_setup.json, see `read_sensor_setup`) travels as the lidar's meta `sensors`. A
+    drive's rig, see `umad_common.datasets.sensor_rig`) travels as the lidar's meta `sensors`. A
     frame that is not scored carries meta `skip` on every topic and no labels."""
     height, width = frame.rgb.shape[:2]
     lidar = frame.lidar if frame.lidar is not None else np.zeros((0, 4), np.float32)

@@ -1,4 +1,5 @@
-"""AnoVox scenarios on disk: a reader for both layouts and writers, as described in ANOVOX.md.
+"""AnoVox scenarios on disk (one `Drive` format): a reader for both layouts and writers, as described
+in ANOVOX.md.
 
 Generator layout (the AnoVox generator's output; also what `umad generate synthetic` writes)::
 
@@ -20,12 +21,13 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterable
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from umad_common.datasets.drive import DatasetError, Drive, DriveFrame, EgoState
 
 ANOMALY_TAGS = (29, 30, 31, 32, 33, 34, 100)
 ANOMALY_CATEGORIES = {
@@ -57,6 +59,7 @@ def class_name(tag: int) -> str:
 ANOMALY_COLOUR = (245, 0, 0)  # benchmark SEMANTIC_IMG colour of every anomaly pixel
 DEPTH_SCALE = 1000.0 / (2**24 - 1)  # CARLA raw depth: metres per unit of R + 256 G + 65536 B
 KMH_PER_MPS = 3.6
+RECORDING_PERIOD_NS = 100_000_000  # AnoVox and the synthetic world record at 10 Hz
 
 # CARLA 0.9.14 CityScapes palette (RGB) by semantic tag.
 CARLA_PALETTE = {
@@ -81,36 +84,6 @@ _GENERATOR_SENSORS = {  # modality -> accepted folder-name prefixes
 _BENCHMARK_SENSORS = {"rgb": "RGB_IMG", "depth": "DEPTH_IMG", "semantic": "SEMANTIC_IMG", "lidar": "PCD"}
 
 
-class DatasetError(ValueError):
-    """A scenario folder or file that cannot be read; the message names the path and what was expected."""
-
-
-@dataclass(frozen=True)
-class EgoState:
-    """The ego's speed (m/s) and controls (CARLA ranges: throttle, brake in [0, 1], steer in [-1, 1])."""
-
-    speed_mps: float = 0.0
-    throttle: float = 0.0
-    brake: float = 0.0
-    steer: float = 0.0
-
-    def as_array(self) -> np.ndarray:
-        return np.array([self.speed_mps, self.throttle, self.brake, self.steer], np.float32)
-
-
-@dataclass
-class AnoVoxFrame:
-    frame_id: int
-    rgb: np.ndarray  # (H, W, 3) uint8
-    depth: np.ndarray | None  # (H, W) float32 metres
-    semantic: np.ndarray | None  # (H, W) uint8 CARLA tags
-    instance: np.ndarray | None  # (H, W) int32 object ids, 0 = none
-    anomaly: np.ndarray  # (H, W) uint8 0 / 1
-    lidar: np.ndarray | None  # (N, 4) float32 (x, -y, z, intensity)
-    ego: EgoState
-    route: np.ndarray | None  # (192, 192) uint8
-
-
 def is_scenario_dir(path: Path) -> bool:
     """A Scenario_* folder that holds a camera folder of either layout."""
     if not (path.is_dir() and path.name.startswith("Scenario_")):
@@ -118,24 +91,6 @@ def is_scenario_dir(path: Path) -> bool:
     return any(
         p.is_dir() and (p.name == "RGB_IMG" or p.name.startswith(_GENERATOR_SENSORS["rgb"])) for p in path.iterdir()
     )
-
-
-def find_scenarios(root: str | Path) -> list[Path]:
-    """Every scenario folder under root (root itself if it is one), sorted by path."""
-    root = Path(root)
-    if not root.exists():
-        raise DatasetError(
-            f"{root}: no such folder; expected an AnoVox scenario folder or a folder containing Scenario_* folders"
-        )
-    if is_scenario_dir(root):
-        return [root]
-    return sorted(p for p in root.rglob("Scenario_*") if is_scenario_dir(p))
-
-
-def normal_root(data: str | Path) -> Path:
-    """DATA/normal for a generated benchmark, else DATA itself (a folder of normal scenarios)."""
-    data = Path(data)
-    return data / "normal" if (data / "normal").is_dir() else data
 
 
 def frame_number(path: Path) -> int | None:
@@ -413,15 +368,17 @@ def colour_to_semantic(rgb: np.ndarray) -> np.ndarray:
     return tags[inverse].reshape(key.shape)
 
 
-class AnoVoxScenario:
+class AnoVoxScenario(Drive):
     """One scenario folder of either layout; frames load lazily by index.
 
     Args:
         path: the Scenario_* folder.
         every: keep every k-th frame (k >= 1), counted in the sorted frame ids.
+        keep: read only these modalities (folder keys: rgb, lidar, action, route, depth, semantic,
+            instance); None: all. The others come back as None (the anomaly as zeros).
     """
 
-    def __init__(self, path: str | Path, every: int = 1):
+    def __init__(self, path: str | Path, every: int = 1, keep: tuple[str, ...] | None = None):
         self.path = Path(path)
         if every < 1:
             raise ValueError(f"every must be >= 1, got {every}")
@@ -439,6 +396,8 @@ class AnoVoxScenario:
                 matches = sorted(n for n in subdirs if n.startswith(prefixes))
                 if matches:
                     self.folders[key] = subdirs[matches[0]]
+        if keep is not None:
+            self.folders = {key: folder for key, folder in self.folders.items() if key in keep or key == "rgb"}
         if "rgb" not in self.folders:
             raise DatasetError(
                 f"{self.path}: no camera folder; expected RGB_IMG/ (benchmark layout) or RGB-CAM(...)_<hash>/ (generator layout)"
@@ -452,6 +411,7 @@ class AnoVoxScenario:
         self.every = every
         self.frame_ids: list[int] = all_ids[::every]
         self.sensors = read_sensor_setup(self.path / "sensor_setup.json")  # None in the benchmark layout
+        self.modalities = frozenset(self.folders) | ({"anomaly"} if "semantic" in self.folders else set())
 
     def __len__(self) -> int:
         return len(self.frame_ids)
@@ -470,10 +430,16 @@ class AnoVoxScenario:
             )
         return path
 
-    def __getitem__(self, index: int) -> AnoVoxFrame:
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"frame index {index} out of range for {len(self)} frames of {self.name}")
-        frame_id = self.frame_ids[index]
+    def stamp_ns(self, index: int) -> int:
+        """AnoVox records at 10 Hz: frame index x `every` x 100 ms (so sampling keeps real time)."""
+        return self.check_index(index) * self.every * RECORDING_PERIOD_NS
+
+    def notes(self) -> list[str]:
+        missing = [key for key in ("lidar", "action", "semantic") if key not in self.folders]
+        return [f"no {key} folder" for key in missing] + ([] if self.sensors else ["no sensor_setup.json"])
+
+    def __getitem__(self, index: int) -> DriveFrame:
+        frame_id = self.frame_ids[self.check_index(index)]
         rgb_path = self._file("rgb", frame_id)
         rgb = read_png(rgb_path, (3, 4), "an 8-bit RGB PNG")[..., 2::-1].copy()
         shape = rgb.shape[:2]
@@ -514,15 +480,11 @@ class AnoVoxScenario:
         if (path := self._file("route", frame_id)) is not None:
             route = read_png(path, (1, 3, 4), "a 192x192 grayscale route PNG")
             route = route if route.ndim == 2 else route[..., 0].copy()
-        return AnoVoxFrame(frame_id, rgb, depth, semantic, instance, anomaly, lidar, ego, route)
-
-    def __iter__(self) -> Iterator[AnoVoxFrame]:
-        for index in range(len(self)):
-            yield self[index]
+        return DriveFrame(frame_id, rgb, depth, semantic, instance, anomaly, lidar, ego, route)
 
 
 def write_benchmark_scenario(
-    frames: Iterable[AnoVoxFrame], out_root: str | Path, name: str, binary_pcd: bool = True
+    frames: Iterable[DriveFrame], out_root: str | Path, name: str, binary_pcd: bool = True
 ) -> Path:
     """Write frames in the benchmark layout: RGB_IMG, SEMANTIC_IMG (palette colours, anomalies
     (245, 0, 0)), DEPTH_IMG (CARLA raw encoding) and PCD (x y z intensity) where the frame has them.
@@ -554,15 +516,3 @@ def write_benchmark_scenario(
         if frame.lidar is not None:
             write_pcd(root / "PCD" / f"PCD_{fid}.pcd", frame.lidar, binary=binary_pcd)
     return root
-
-
-SENSOR_MODALITIES = ("rgb", "lidar", "action", "route")  # what the world model sees; never labels
-
-
-def label_free_scenario(path: Path, every: int = 1, keep: tuple[str, ...] = SENSOR_MODALITIES) -> AnoVoxScenario:
-    """An AnoVoxScenario that cannot open label files: modalities outside `keep` (semantic,
-    instance, anomaly, depth) are hidden from the reader, which then returns None for them. What
-    trains or calibrates a model on normal drives reads them through this."""
-    scenario = AnoVoxScenario(path, every=every)
-    scenario.folders = {key: folder for key, folder in scenario.folders.items() if key in keep}
-    return scenario
