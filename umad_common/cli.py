@@ -51,6 +51,11 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str, str]] = {  # words -> (module, w
         "republish a recorded MCAP log",
         "umad replay run.mcap --record run2.mcap",
     ),
+    ("data", "info"): (
+        "umad_common.commands.data_info",
+        "what UMAD reads of a folder of drives: frames, rate, topics by role, what is missing",
+        "umad data info drives/ --topics camera=/front/image_raw",
+    ),
     ("generate", "synthetic"): (
         "umad_common.commands.generate",
         "write the built-in synthetic driving benchmark",
@@ -111,6 +116,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str, str]] = {  # words -> (module, w
 GROUPS = {  # first word of a two-word verb -> what its verbs do, one example
     "graph": ("check a graph file without starting anything", "umad graph check graph.yaml"),
     "op": ("run, start or stop one operator of a graph", "umad op stop diff_temporal"),
+    "data": ("look at drives before using them", "umad data info drives/"),
     "generate": ("write a data set", "umad generate synthetic data/synth"),
     "train": (
         "train a model on normal drives (never reads a label)",

@@ -17,15 +17,16 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from umad_common import ASSETS, recorded_path
-from umad_common.commands.checks import model_file, normal_drives, writable_output
+from umad_common.commands.checks import add_topics_argument, model_file, normal_drives, writable_output
 
 log = logging.getLogger("umad.calibrate")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "data", type=Path, help="benchmark folder (its normal/ drives are used) or a folder of normal drives"
+        "data", type=Path, help="drives: a benchmark folder (its normal/ drives are used) or normal drives"
     )
+    add_topics_argument(parser)
     parser.add_argument(
         "--world-model", type=Path, required=True, help="world model weights (MODEL.safetensors + MODEL.json)"
     )
@@ -59,14 +60,12 @@ def sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def calibration_drives(data: Path, record: dict) -> tuple[list[Path], str]:
-    """The drives to calibrate on and why: the model's held-out normal drives when it names them."""
-    from umad_common.datasets.anovox import find_scenarios, normal_root
+def calibration_drives(data: Path, record: dict, topics: str | None = None) -> tuple[list, str]:
+    """The label-free drives to calibrate on and why: the model's held-out normal drives when it names them."""
+    from umad_common.datasets.drive import normal_root, training_drives
 
     root = normal_root(data)
-    drives = find_scenarios(root)
-    if not drives:
-        raise SystemExit(f"{root}: no Scenario_* folders; expected AnoVox normal drives")
+    drives = training_drives(data, topics)
     heldout = set(record.get("heldout_drives") or [])
     chosen = [d for d in drives if d.name in heldout]
     if chosen:
@@ -80,19 +79,20 @@ def calibration_drives(data: Path, record: dict) -> tuple[list[Path], str]:
 
 
 def sensor_frames(scenario, limit: int) -> Iterator:
-    """The first `limit` frames of a label-free scenario (`label_free_scenario`: its reader cannot
-    open a label file) as the replayer sends them to the world model: camera, lidar, ego, route."""
+    """The first `limit` frames of a label-free drive (`label_free_drive`: its reader cannot open a
+    label) as the replayer sends them to the world model: camera, lidar (with the drive's rig), ego, route."""
     from umad_common.dataflow.operator import frame_of
     from umad_operators.replayer import frame_outputs
     from umad_operators.world_model import WorldModelPredictor
 
     ports = [port.name for port in WorldModelPredictor.inputs]
     for seq in range(min(len(scenario), limit)):
-        yield frame_of(frame_outputs(scenario[seq], scenario.name), ports, scenario.name, seq, producer="calibrate")
+        outputs = frame_outputs(scenario[seq], scenario.name, scenario.sensors)
+        yield frame_of(outputs, ports, scenario.name, seq, producer="calibrate")
 
 
 def run(args: argparse.Namespace) -> int:
-    normal_drives(args.data, "DATA")
+    normal_drives(args.data, "DATA", args.topics)
     model_file(args.world_model, "--world-model", "world model")
     if args.features is not None:
         model_file(args.features, "--features", "perceptual feature net")
@@ -100,7 +100,6 @@ def run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
-    from umad_common.datasets.anovox import label_free_scenario
     from umad_common.differences import METRICS, CalibrationFitter, MetricOptions, build_metric, range_pairs
     from umad_common.models.weights import weight_paths
     from umad_operators.world_model import WorldModelPredictor
@@ -129,9 +128,8 @@ def run(args: argparse.Namespace) -> int:
         metrics.append(build_metric("perceptual", MetricOptions(vgg_weights=args.vgg_weights)))
     metrics += [build_metric(path, MetricOptions(features=features)) for path in args.metric]
 
-    drives, why = calibration_drives(args.data, record)
-    scenarios = [label_free_scenario(drive) for drive in drives]
-    per_drive = -(-args.frames // len(drives))
+    scenarios, why = calibration_drives(args.data, record, args.topics)
+    per_drive = -(-args.frames // len(scenarios))
     plan = []  # frames taken from the start of each drive (the world model needs them in order)
     for scenario in scenarios:
         plan.append(min(len(scenario), per_drive, args.frames - sum(plan)))
@@ -152,10 +150,10 @@ def run(args: argparse.Namespace) -> int:
                 frames += 1
                 progress.update(1)
     if frames == 0:
-        raise SystemExit(f"{args.data}: the calibration drives {[d.name for d in drives]} hold no frames")
+        raise SystemExit(f"{args.data}: the calibration drives {[d.name for d in scenarios]} hold no frames")
     info = {
         "data": recorded_path(args.data),
-        "drives": [d.name for d in drives],
+        "drives": [d.name for d in scenarios],
         "drives_chosen": why,
         "frames": frames,
         "stride": stride,

@@ -1,11 +1,12 @@
-"""What every verb checks before it starts anything long: its data folders, model files and their
-JSON records, recorded logs, the graph, the output folder, the hub's port.
+"""What every verb checks before it starts anything long: its drives, model files and their JSON
+records, recorded logs, the graph, the output folder, the hub's port.
 
 A wrong input raises `InputError`: one line naming the input, what was wrong and what was expected;
 `umad` prints it and exits 2 (`EXIT_BAD_INPUT`) before any process starts or any file is written.
-The checks read folder listings, file headers and JSON records only: no torch, no image decoding, so
-a verb answers within a second or two even on a busy machine. Each verb calls them first in `run`,
-before its heavy imports.
+The checks read folder listings, file headers, JSON records and recordings' indexes (their topics
+and message times, and each role's topic chosen) only: no torch, no image decoding, so a verb
+answers within seconds even on a busy machine. Each verb calls them first in `run`, before its heavy
+imports.
 """
 
 from __future__ import annotations
@@ -21,8 +22,12 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from umad_common.dataflow.graph import Graph
+    from umad_common.datasets.drive import Drive
 
-ANOVOX_FOLDER = "an AnoVox folder: Scenario_* drive folders, or anomalous/ and normal/ holding them as `umad generate synthetic` writes"
+DRIVES = (
+    "drives: AnoVox Scenario_* folders, ROS 2 bags (a rosbag2 folder, .mcap or .db3), MCAPs with Foxglove "
+    "schemas, or a folder of them; or anomalous/ and normal/ holding them as `umad generate synthetic` writes"
+)
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 SAFETENSORS_MAX_HEADER = 100_000_000  # bytes; larger is not a header
 
@@ -131,29 +136,58 @@ def evaluation_run(path: Path, name: str) -> Path:
     return path
 
 
-def drives(data: Path, name: str) -> list[Path]:
-    """The AnoVox drive (Scenario_*) folders under `data`; InputError when there are none."""
-    existing_folder(data, name, ANOVOX_FOLDER)
-    from umad_common.datasets.anovox import find_scenarios
+def add_topics_argument(parser) -> None:
+    """`--topics`, for every verb that reads drives."""
+    parser.add_argument(
+        "--topics",
+        default=None,
+        metavar="ROLE=TOPIC,...",
+        help="recordings: the topic of each role, e.g. camera=/a,lidar=/b,odometry=/c,control=/d,labels=/e; "
+        "roles not named are chosen by type (`umad data info DATA` shows the choice)",
+    )
 
-    found = find_scenarios(data)
+
+def drive_paths(data: Path, name: str) -> list[Path]:
+    """The drives under `data` (a folder, or one recording file), found by listing; InputError when
+    there are none."""
+    from umad_common.datasets.drive import find_drives
+
+    if not data.exists():
+        raise InputError.of(f"{name} {data}", "no such folder or file", DRIVES)
+    found = find_drives(data)
     if not found:
-        raise InputError.of(
-            f"{name} {data}", "holds no drive (no Scenario_* folder with a camera folder)", ANOVOX_FOLDER
-        )
+        raise InputError.of(f"{name} {data}", "holds no drive", DRIVES)
     return found
 
 
-def normal_drives(data: Path, name: str) -> list[Path]:
-    """The drives a training verb reads: DATA/normal/ when it exists, else DATA's drives."""
-    existing_folder(data, name, ANOVOX_FOLDER)
-    return drives(data / "normal" if (data / "normal").is_dir() else data, name)
+def opened(paths: list[Path], name: str, **options) -> list[Drive]:
+    """Each drive opened (`umad_common.datasets.drive.open_drive` with `options`): its format read,
+    a recording's topics chosen and its index read. InputError naming the first that cannot be."""
+    from umad_common.datasets.drive import DatasetError, open_drive
+
+    try:
+        return [open_drive(path, **options) for path in paths]
+    except DatasetError as exc:
+        raise InputError(f"{name} {exc}") from None
 
 
-def training_inputs(data: Path, out: Path, suffix: str) -> None:
+def drives(data: Path, name: str, topics: str | None = None) -> list[Drive]:
+    """The drives under `data`, opened; InputError when there are none or one cannot be read."""
+    return opened(drive_paths(data, name), name, topics=topics)
+
+
+def normal_drives(data: Path, name: str, topics: str | None = None) -> list[Drive]:
+    """The drives a training verb reads: DATA/normal/ when it exists, else DATA's drives; opened
+    without their labels."""
+    from umad_common.datasets.drive import SENSOR_MODALITIES, normal_root
+
+    return opened(drive_paths(normal_root(data), name), name, topics=topics, keep=SENSOR_MODALITIES)
+
+
+def training_inputs(data: Path, out: Path, suffix: str, topics: str | None = None) -> None:
     """What a training verb reads and writes: normal drives in DATA, and `--out` a file name with
     `suffix` ("" for a name without one) that can be written, its JSON record beside it."""
-    normal_drives(data, "DATA")
+    normal_drives(data, "DATA", topics)
     if out.suffix != suffix:
         raise InputError.of(
             f"--out {out}",
@@ -165,45 +199,57 @@ def training_inputs(data: Path, out: Path, suffix: str) -> None:
     writable_output(out, "--out", folder=False)
 
 
-def evaluation_drives(data: Path, name: str) -> tuple[Path, list[Path]]:
-    """The folder `umad eval` scores (DATA/anomalous/ when it exists, else DATA) and its drives, none
-    of them in DATA/normal/; each must have the semantic camera the anomaly labels come from."""
-    existing_folder(data, name, ANOVOX_FOLDER)
-    from umad_common.datasets.anovox import find_scenarios
+def evaluation_drives(
+    data: Path, name: str, topics: str | None = None, allow_truncated: bool = False
+) -> tuple[Path, list[Drive]]:
+    """The folder or file `umad eval` scores (DATA/anomalous/ when it exists, else DATA) and its drives,
+    none of them in DATA/normal/; each must carry anomaly labels (an AnoVox semantic camera, a
+    recording's labels topic)."""
+    from umad_common.datasets.drive import find_drives
 
+    if not data.exists():
+        raise InputError.of(f"{name} {data}", "no such folder or file", DRIVES)
     source = data / "anomalous" if (data / "anomalous").is_dir() else data
-    normal = find_scenarios(data / "normal") if (data / "normal").is_dir() else []
-    found = [d for d in find_scenarios(source) if d not in normal]
-    if not found:
-        problem = (
-            f"no anomalous drives: only normal ones ({len(normal)} in normal/)"
-            if normal
-            else "no anomalous drives (no Scenario_* folder with a camera folder)"
-        )
-        raise InputError.of(f"{name} {data}", problem, f"{ANOVOX_FOLDER}; its anomalous/ drives are scored")
-    unlabelled = [d for d in found if "semantic" not in _sensor_folders(d, name)]
+    normal = find_drives(data / "normal") if (data / "normal").is_dir() else []
+    paths = [d for d in find_drives(source) if d not in normal]
+    if not paths:
+        problem = f"no anomalous drives: only normal ones ({len(normal)} in normal/)" if normal else "holds no drive"
+        raise InputError.of(f"{name} {data}", problem, f"{DRIVES}; its anomalous/ drives are scored")
+    found = opened(paths, name, topics=topics, allow_truncated=allow_truncated)
+    unlabelled = [d for d in found if "anomaly" not in d.modalities]
     if unlabelled:
         raise InputError.of(
             f"{name} {data}",
-            f"{len(unlabelled)} of {len(found)} drives have no semantic camera, the anomaly labels (e.g. {unlabelled[0].name})",
-            "SEMANTIC_IMG/ (benchmark layout) or SEMANTIC-CAM(...)/ (generator layout) in every scored drive",
+            f"{len(unlabelled)} of {len(found)} drives have no anomaly labels (e.g. {unlabelled[0].name})",
+            "SEMANTIC_IMG/ (benchmark layout) or SEMANTIC-CAM(...)/ (generator layout) in every scored AnoVox drive, "
+            "a labels topic (mono8, nonzero = anomaly; --topics labels=TOPIC) in every scored recording",
         )
     return source, found
 
 
-def _sensor_folders(drive: Path, name: str) -> dict[str, Path]:
-    """The modalities a drive folder has (`rgb`, `semantic`, `lidar`, ...), read from its listing."""
-    from umad_common.datasets.anovox import AnoVoxScenario, DatasetError
+def source_drives(graph: Graph) -> list[Drive]:
+    """The drives the graph's replayers will publish, opened as they will open them (their `source`,
+    `topics`, `every`, `allow_truncated`); a replayer of a recorded UMAD log is left to the replayer."""
+    from umad_common import resolve_path
+    from umad_common.datasets.drive import UMAD_LOG_PROFILE, mcap_profile
 
-    try:
-        return AnoVoxScenario(drive).folders
-    except DatasetError as exc:
-        raise InputError(f"{name} {exc}") from None
+    found = []
+    for spec in graph.spec.operators:
+        if spec.kind != "replayer":
+            continue
+        params = graph.classes[spec.id].validate_params(spec.params)
+        source = resolve_path(params.source, graph.base_dir)
+        if source.suffix == ".mcap" and source.is_file() and mcap_profile(source) == UMAD_LOG_PROFILE:
+            continue
+        name = f"operator {spec.id!r}: source"
+        options = {"every": params.every, "topics": params.topics, "allow_truncated": params.allow_truncated}
+        found += opened(drive_paths(source, name), name, **options)
+    return found
 
 
-def lidar_notice(graph: Graph, scenarios: list[Path], name: str) -> str | None:
+def lidar_notice(graph: Graph, scenarios: list[Drive], name: str) -> str | None:
     """A line saying which operators run without lidar when some drives have none, else None."""
-    without = [d for d in scenarios if "lidar" not in _sensor_folders(d, name)]
+    without = [d for d in scenarios if "lidar" not in d.modalities]
     if not without:
         return None
     readers = sorted(

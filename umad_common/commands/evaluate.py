@@ -2,8 +2,9 @@
 
 0. checks: every input (data, models and their records, graph, --out, the hub's port) before anything
    starts or is written; a wrong one is one line and exit code 2;
-1. data: `--data DIR` (any AnoVox folder; its `anomalous/` part if it has one), or the built-in
-   synthetic benchmark, generated into OUT/benchmark with a seed the shipped models never saw;
+1. data: `--data DIR` (drives with anomaly labels: AnoVox folders, ROS 2 bags or Foxglove MCAPs with a
+   labels topic; its `anomalous/` part if it has one), or the built-in synthetic benchmark, generated
+   into OUT/benchmark with a seed the shipped models never saw;
 2. the graph (default graph.yaml: world model, all five differences, fusion, ground-truth and
    unsupervised segmenters, refiners, MNAD, accumulator; SAM too with --sam-checkpoint) runs with
    the chosen models, recorded to OUT/run.mcap;
@@ -13,7 +14,7 @@
 (the default) scores every 2nd frame and writes one line per configuration.
 
 example: umad eval --out umad-eval   (the built-in benchmark and the shipped models: about 6 minutes
-on 2 cores); umad eval --data DIR --out OUT for your own AnoVox drives
+on 2 cores); umad eval --data DIR --out OUT [--topics camera=/a,labels=/b] for your own drives
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import yaml
 from umad_common import ASSETS, SAM_ENV_SCRIPT
 from umad_common.commands.checks import (
     InputError,
+    add_topics_argument,
     checked_graph,
     evaluation_drives,
     existing_file,
@@ -55,7 +57,14 @@ PROTOCOLS = {  # name -> (every k-th frame scored, report table layout)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = __doc__  # the steps it runs
     parser.add_argument(
-        "--data", type=Path, default=None, help="AnoVox folder to evaluate (default: generate the built-in benchmark)"
+        "--data",
+        type=Path,
+        default=None,
+        help="drives to evaluate, with anomaly labels (default: generate the built-in benchmark)",
+    )
+    add_topics_argument(parser)
+    parser.add_argument(
+        "--allow-truncated", action="store_true", help="read a recording cut off by a crash up to the damage"
     )
     parser.add_argument(
         "--graph", type=Path, default=DEFAULT_GRAPH, help="graph file (default: the built-in graph.yaml)"
@@ -139,7 +148,9 @@ def check_inputs(args: argparse.Namespace) -> Path | None:
             "--sam-python",
             f"the python of the SAM environment (build it with `bash {SAM_ENV_SCRIPT} .venv-sam`)",
         )
-    source, scenarios = evaluation_drives(args.data, "--data") if args.data else (None, [])
+    source, scenarios = (
+        evaluation_drives(args.data, "--data", args.topics, args.allow_truncated) if args.data else (None, [])
+    )
     graph = checked_graph(args.graph, local=True)
     free_hub_port(args.hub or graph.spec.hub, "--hub" if args.hub else f"{args.graph}: hub")
     if source is None:  # the benchmark's folder does not exist yet: the graph without its data
@@ -251,6 +262,8 @@ def _eval_graph(args: argparse.Namespace, source: Path) -> dict:
         by_kind.setdefault(op.get("kind", ""), []).append(op)
     for op in by_kind.get("replayer", []):
         op.setdefault("params", {}).update({"source": str(source), "every": 1, "score_every": args.every})
+        if args.data:
+            op["params"].update({"topics": args.topics, "allow_truncated": args.allow_truncated})
     for op in by_kind.get("world_model", []):
         op.setdefault("params", {})["model"] = str(args.world_model.resolve())
     for op in by_kind.get("difference", []):

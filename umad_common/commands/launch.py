@@ -5,7 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 
 from umad_common import DEFAULT_GRAPH, LIVE_GRAPH
-from umad_common.commands.checks import InputError, checked_graph, free_hub_port, writable_output
+from umad_common.commands.checks import (
+    InputError,
+    checked_graph,
+    free_hub_port,
+    lidar_notice,
+    print_notice,
+    source_drives,
+    writable_output,
+)
 from umad_common.commands.common import add_graph_argument
 
 
@@ -30,6 +38,7 @@ def run(args) -> int:
         )
     path = str(LIVE_GRAPH) if args.live else args.graph
     graph = checked_graph(path, args.set, local=True, runs=True)
+    print_notice(lidar_notice(graph, source_drives(graph), "the replayer's drives"))
     free_hub_port(args.hub or graph.spec.hub, "--hub" if args.hub else f"{path}: hub")
     if args.record:
         writable_output(args.record, "--record", folder=False)

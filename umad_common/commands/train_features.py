@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from umad_common.commands.checks import training_inputs
+from umad_common.commands.checks import add_topics_argument, training_inputs
 from umad_common.commands.common import add_device_argument, resolve_device_or_exit
 
 log = logging.getLogger("umad.train.features")
@@ -14,8 +14,9 @@ log = logging.getLogger("umad.train.features")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "data", type=Path, help="benchmark folder (its normal/ drives are used) or a folder of normal scenarios"
+        "data", type=Path, help="drives: a benchmark folder (its normal/ drives are used) or normal drives"
     )
+    add_topics_argument(parser)
     parser.add_argument(
         "--out", type=Path, required=True, help="weights file (.safetensors); its .json config is written beside it"
     )
@@ -33,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    training_inputs(args.data, args.out, ".safetensors")
+    training_inputs(args.data, args.out, ".safetensors", args.topics)
     import torch
 
     from umad_common import recorded_path
@@ -47,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = FeatureTrainingConfig(
         epochs=args.epochs, seed=args.seed, max_frames=args.frames, batch_size=args.batch_size, holdout=args.holdout
     )
-    frames, heldout = load_normal_rgb(args.data, cfg)
+    frames, heldout = load_normal_rgb(args.data, cfg, args.topics)
     model, record = train_feature_net(frames, cfg, data_name=recorded_path(args.data), heldout=heldout, device=device)
     save_feature_net(model, args.out, record)
     log.info("wrote %s (+ %s), %s", args.out, args.out.with_suffix(".json").name, record["training"])

@@ -15,11 +15,13 @@ import os
 import shlex
 from pathlib import Path
 
+from umad_common.commands.checks import add_topics_argument, model_file, training_inputs
 from umad_common.commands.common import add_device_argument, resolve_device_or_exit
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("data", type=Path, help="AnoVox folder whose normal drives the world model was trained on")
+    parser.add_argument("data", type=Path, help="drives: the normal drives the world model was trained on")
+    add_topics_argument(parser)
     parser.add_argument(
         "--world-model", type=Path, required=True, help="a world model without a lidar head (MODEL.safetensors)"
     )
@@ -35,10 +37,13 @@ def command_line(args: argparse.Namespace) -> str:
     words = ["umad", "train", "lidar-head", str(args.data), "--world-model", str(args.world_model)]
     words += ["--out", str(args.out), "--epochs", str(args.epochs), "--seed", str(args.seed)]
     words += ["--threads", str(args.threads)] + (["--device", args.device] if args.device != "auto" else [])
+    words += ["--topics", args.topics] if args.topics else []
     return shlex.join(words)
 
 
 def run(args: argparse.Namespace) -> int:
+    training_inputs(args.data, args.out, "", args.topics)
+    model_file(args.world_model, "--world-model", "world model")
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see `umad train world-model`
     from umad_common.training.train_world_model import fit_lidar_head
 
@@ -54,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
             threads=args.threads,
             command=command_line(args),
             device=resolve_device_or_exit(args.device),
+            topics=args.topics,
         )
     except ValueError as exc:
         raise SystemExit(str(exc)) from None

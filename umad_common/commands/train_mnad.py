@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from umad_common.commands.checks import training_inputs
+from umad_common.commands.checks import add_topics_argument, training_inputs
 from umad_common.commands.common import add_device_argument, resolve_device_or_exit
 
 log = logging.getLogger("umad.train.mnad")
@@ -14,8 +14,9 @@ log = logging.getLogger("umad.train.mnad")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "data", type=Path, help="benchmark folder (its normal/ drives are used) or a folder of normal scenarios"
+        "data", type=Path, help="drives: a benchmark folder (its normal/ drives are used) or normal drives"
     )
+    add_topics_argument(parser)
     parser.add_argument(
         "--out", type=Path, required=True, help="weights file (.safetensors); its .json config is written beside it"
     )
@@ -36,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    training_inputs(args.data, args.out, ".safetensors")
+    training_inputs(args.data, args.out, ".safetensors", args.topics)
     import torch
 
     from umad_common.models.mnad import MnadConfig, save_mnad
@@ -50,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
         epochs=args.epochs, seed=args.seed, batch_size=args.batch_size, max_frames=args.frames, minutes=args.minutes
     )
     model_cfg = MnadConfig()
-    frames = load_normal_frames(args.data, model_cfg, train_cfg.max_frames)
+    frames = load_normal_frames(args.data, model_cfg, train_cfg.max_frames, args.topics)
     model, record = train_mnad(frames, train_cfg, model_cfg, device=device)
     record["training"]["data"] = str(args.data)
     save_mnad(model, args.out, record)

@@ -14,7 +14,7 @@ import os
 import shlex
 from pathlib import Path
 
-from umad_common.commands.checks import training_inputs
+from umad_common.commands.checks import add_topics_argument, training_inputs
 from umad_common.commands.common import add_device_argument, resolve_device_or_exit
 
 log = logging.getLogger("umad.train.segmenter")
@@ -22,8 +22,9 @@ log = logging.getLogger("umad.train.segmenter")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "data", type=Path, help="benchmark folder (its normal/ drives are used) or a folder of normal scenarios"
+        "data", type=Path, help="drives: a benchmark folder (its normal/ drives are used) or normal drives"
     )
+    add_topics_argument(parser)
     parser.add_argument(
         "--out", type=Path, required=True, help="weights file (.safetensors); its .json record is written beside it"
     )
@@ -60,6 +61,7 @@ def configs_of(args: argparse.Namespace):
 def command_line(args: argparse.Namespace) -> str:
     """The command as it was given (flags left at their defaults omitted), for the model's record."""
     words = ["umad", "train", "segmenter", str(args.data), "--out", str(args.out)]
+    words += ["--topics", args.topics] if args.topics else []
     for flag in (*FLAGS, "clusters"):
         if getattr(args, flag) is not None:
             words += ["--" + flag.replace("_", "-"), str(getattr(args, flag))]
@@ -68,7 +70,7 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    training_inputs(args.data, args.out, ".safetensors")
+    training_inputs(args.data, args.out, ".safetensors", args.topics)
     # passive OpenMP waiting (see train_world_model): must be set before torch loads
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import torch
@@ -80,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     net_cfg, train_cfg = configs_of(args)
     torch.set_num_threads(args.threads)
     device = resolve_device_or_exit(args.device)
-    frames, heldout = load_normal_rgb(args.data, train_cfg)
+    frames, heldout = load_normal_rgb(args.data, train_cfg, args.topics)
     model, record = train_segment_net(frames, train_cfg, net_cfg, device)
     record = {"command": command_line(args), "data": str(args.data), "heldout_drives": heldout} | record
     save_segment_net(model, args.out, {"training": record})

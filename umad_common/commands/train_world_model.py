@@ -1,7 +1,7 @@
 """`umad train world-model DATA --out MODEL`: train the world model on the normal drives of DATA.
 
-Reads DATA/normal when it exists (a generated benchmark), else every Scenario_* under DATA; never
-reads labels. Writes MODEL.safetensors, MODEL.json (the full model and training configs, the
+Reads DATA/normal when it exists (a generated benchmark), else every drive under DATA (AnoVox folders,
+ROS 2 bags, Foxglove MCAPs; `--topics` picks a recording's topics); never reads labels. Writes MODEL.safetensors, MODEL.json (the full model and training configs, the
 command that trained it, held-out drives, loss history) and the resumable checkpoint
 MODEL.train.pt (not needed to use the model). `--config MODEL.json` trains with the configs of a
 saved model: `umad train world-model DATA --out NEW --config umad_common/assets/world_model.json`
@@ -25,14 +25,17 @@ import shlex
 from dataclasses import asdict
 from pathlib import Path
 
-from umad_common.commands.checks import existing_file, training_inputs
+from umad_common.commands.checks import add_topics_argument, existing_file, training_inputs
 from umad_common.commands.common import add_device_argument, resolve_device_or_exit
 
 DEFAULT_EPOCHS = 35
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("data", type=Path, help="AnoVox folder (a generated benchmark or a folder of normal drives)")
+    parser.add_argument(
+        "data", type=Path, help="drives: a benchmark folder (its normal/ drives are used) or normal drives"
+    )
+    add_topics_argument(parser)
     parser.add_argument(
         "--out", type=Path, required=True, help="output path without suffix, e.g. umad_common/assets/world_model"
     )
@@ -140,6 +143,7 @@ def processes_of(args: argparse.Namespace, batch_size: int) -> int:
 def command_line(args: argparse.Namespace) -> str:
     """The command as it was given (flags left at their defaults omitted), for the model's record."""
     words = ["umad", "train", "world-model", str(args.data), "--out", str(args.out)]
+    words += ["--topics", args.topics] if args.topics else []
     for flag in ("config", "epochs", "seed", "batch_size", "sequence_length", "holdout", "frame_step"):
         if getattr(args, flag) is not None:
             words += ["--" + flag.replace("_", "-"), str(getattr(args, flag))]
@@ -151,7 +155,7 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    training_inputs(args.data, args.out, "")
+    training_inputs(args.data, args.out, "", args.topics)
     if args.config:
         existing_file(args.config, "--config", "a saved MODEL.json (or any JSON with 'config' and 'train_config')")
     # On a shared machine, OpenMP threads that spin while waiting make 2 threads slower than 1;
@@ -175,6 +179,7 @@ def run(args: argparse.Namespace) -> int:
         train_config=train,
         command=command_line(args),
         device=str(device),
+        topics=args.topics,
     )
     if distributed.started_by_torchrun():
         distributed.run_rank(train_world_model, training)

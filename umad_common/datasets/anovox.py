@@ -434,6 +434,9 @@ class AnoVoxScenario(Drive):
         """AnoVox records at 10 Hz: frame index x `every` x 100 ms (so sampling keeps real time)."""
         return self.check_index(index) * self.every * RECORDING_PERIOD_NS
 
+    def describe(self) -> str:
+        return f"AnoVox folder, {self.layout} layout"
+
     def notes(self) -> list[str]:
         missing = [key for key in ("lidar", "action", "semantic") if key not in self.folders]
         return [f"no {key} folder" for key in missing] + ([] if self.sensors else ["no sensor_setup.json"])

@@ -101,6 +101,25 @@ class Drive(ABC):
         """What this drive lacks or how it was read, a line each (for `umad data info` and the run's summary)."""
         return []
 
+    def describe(self) -> str:
+        """The drive's format in words (`AnoVox folder, generator layout`, `ROS 2 bag, MCAP storage`)."""
+        return type(self).__name__
+
+    def info(self) -> dict:
+        """What `umad data info` prints of this drive."""
+        frames = len(self)
+        duration = (self.stamp_ns(frames - 1) - self.stamp_ns(0)) / 1e9 if frames > 1 else 0.0
+        return {
+            "name": self.name,
+            "path": str(self.path),
+            "format": self.describe(),
+            "frames": frames,
+            "duration_s": round(duration, 3),
+            "rate_hz": round((frames - 1) / duration, 3) if duration > 0 else None,
+            "modalities": sorted(self.modalities),
+            "notes": self.notes(),
+        }
+
     def check_index(self, index: int) -> int:
         """`index` as a non-negative index, or IndexError naming the drive."""
         if not -len(self) <= index < len(self):
@@ -207,6 +226,21 @@ def open_drive(
         f"{path}: not a drive; expected an AnoVox Scenario_* folder, a ROS 2 bag (a folder with metadata.yaml, "
         "or a .mcap / .db3 file) or an MCAP file with Foxglove schemas"
     )
+
+
+def training_drives(
+    data: str | Path, topics: str | dict[str, str] | None = None, every: int = 1, keep=SENSOR_MODALITIES
+) -> list[Drive]:
+    """The normal drives a training verb reads (DATA/normal when it exists, else DATA), label-free.
+
+    Raises:
+        DatasetError: DATA holds no drive, or one cannot be read.
+    """
+    root = normal_root(data)
+    paths = find_drives(root)
+    if not paths:
+        raise DatasetError(f"{root}: no drives found; expected normal drives (AnoVox folders or recordings)")
+    return [label_free_drive(path, every, topics, keep) for path in paths]
 
 
 def label_free_drive(

@@ -43,7 +43,7 @@ from umad_common.datasets.recording_messages import (
     odometry_of,
     transforms_of,
 )
-from umad_common.datasets.topics import Choice, choose_topics, parse_topics
+from umad_common.datasets.topics import ROLE_TYPES, Choice, choose_topics, parse_topics
 
 FRAME_ROLES = ("lidar", "labels")  # read with each frame
 SERIES_ROLES = ("odometry", "control")  # small messages, all decoded when the drive opens
@@ -512,24 +512,20 @@ class RecordingDrive(Drive):
         notes.append(f"rig: {self.rig_note}")
         return notes
 
+    def describe(self) -> str:
+        return self.store.kind
+
     def info(self) -> dict:
-        """What `umad data info` prints of this drive."""
-        duration = (int(self.frame_times[-1]) - int(self.frame_times[0])) / 1e9 if len(self) > 1 else 0.0
-        return {
-            "name": self.name,
-            "path": str(self.path),
-            "format": self.store.kind,
-            "frames": len(self),
-            "duration_s": round(duration, 3),
-            "rate_hz": round(1e9 / self.period_ns, 3) if self.period_ns else None,
+        """What `umad data info` prints of this drive: also each role's topic and why it was chosen."""
+        return super().info() | {
             "roles": {
                 role: [
                     {"topic": c.topic, "type": c.type, "why": c.why, "messages": self.store.counts.get(c.topic, 0)}
                     for c in choices
                 ]
-                for role, choices in self.roles.items()
+                for role in ROLE_TYPES
+                if (choices := self.roles.get(role))
             },
-            "notes": self.notes(),
         }
 
 

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import torch
 
-from umad_common.datasets.anovox import AnoVoxScenario, find_scenarios, label_free_scenario, normal_root
+from umad_common.datasets.drive import Drive, find_drives, label_free_drive, normal_root, open_drive
 from umad_common.models.world_model import State, WorldModel
 from umad_common.training.train_world_model import DriveArrays, load_drive, observation_batch, psnr, scale_speed
 
@@ -87,10 +87,11 @@ def lidar_errors(model: WorldModel, states: State, views: np.ndarray, chunk: int
     return np.concatenate(errors) if errors else np.zeros(0, np.float32)
 
 
-def unseen_normal_drives(data: Path, record: dict) -> list[Path]:
-    """Normal drives under DATA that the model did not train on (by the names in its record)."""
+def unseen_normal_drives(data: Path, record: dict, topics: str | None = None) -> list[Drive]:
+    """Normal drives under DATA that the model did not train on (by the names in its record), label-free."""
     trained = set(record.get("training_drives") or [])
-    return [p for p in find_scenarios(normal_root(Path(data))) if p.name not in trained]
+    drives = [label_free_drive(path, topics=topics) for path in find_drives(normal_root(Path(data)))]
+    return [drive for drive in drives if drive.name not in trained]
 
 
 def label_masks(scenario, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -114,21 +115,23 @@ def evaluate_world_model(
     horizon: int = 3,
     normal_limit: int | None = None,
     anomalous_limit: int | None = None,
+    topics: str | None = None,
 ) -> dict:
     """Figures of `model` on DATA: its unseen normal drives (up to `normal_limit`) and DATA/anomalous
     (up to `anomalous_limit` drives). Returns PSNRs (reconstruction, prediction k = 1..horizon),
     the error inside / outside anomalies and their ratio, and the PSNRs of each normal drive
-    (`per_drive`, by scenario name): which drives are hard."""
+    (`per_drive`, by drive name): which drives are hard. The ratio reads the road from semantic labels:
+    drives without them (recordings) are left out of it. `topics`: a recording's topic per role."""
     config = model.config
     model.eval()
     figures: dict = {}
-    normal = unseen_normal_drives(data, record)[:normal_limit]
+    normal = unseen_normal_drives(data, record, topics)[:normal_limit]
     squared = {k: 0.0 for k in range(horizon + 1)}  # k = 0: the reconstruction
     counts = {k: 0 for k in range(horizon + 1)}
     per_drive: dict[str, dict[str, float]] = {}
     range_errors: dict[int, list[np.ndarray]] = {k: [] for k in range(horizon + 1)}
-    for path in normal:
-        drive = load_drive(label_free_scenario(path, config.frame_step), config)
+    for unseen in normal:
+        drive = load_drive(label_free_drive(unseen.path, config.frame_step, topics), config)
         target = drive.rgb.astype(np.float32) / 255.0
         posterior, recon = filter_drive(model, drive)
         drive_squared = {0: float(((recon - target) ** 2).sum())}
@@ -143,7 +146,7 @@ def evaluate_world_model(
         for k in drive_squared:
             squared[k] += drive_squared[k]
             counts[k] += drive_counts[k]
-        per_drive[path.name] = psnr_figures(drive_squared, drive_counts)
+        per_drive[unseen.name] = psnr_figures(drive_squared, drive_counts)
     if normal:
         figures["normal_drives"] = len(normal)
         figures["normal_frames"] = counts[0] // (config.image_height * config.image_width * 3)
@@ -154,21 +157,22 @@ def evaluate_world_model(
                 figures[name] = float(np.median(np.concatenate(errors))) if errors else float("nan")
 
     anomalous_root = Path(data) / "anomalous"
-    paths = find_scenarios(anomalous_root) if anomalous_root.is_dir() else []
+    paths = find_drives(anomalous_root) if anomalous_root.is_dir() else []
     paths = paths[:anomalous_limit] if anomalous_limit else paths
+    labelled = [open_drive(path, config.frame_step, topics) for path in paths]
+    labelled = [drive for drive in labelled if "semantic" in drive.modalities]
     sums = {"anomaly": 0.0, "road": 0.0}
     pixels = {"anomaly": 0, "road": 0}
-    for path in paths:
-        drive = load_drive(label_free_scenario(path, config.frame_step), config)
+    for scenario in labelled:
+        drive = load_drive(label_free_drive(scenario.path, config.frame_step, topics), config)
         _, recon = filter_drive(model, drive)
         error = np.abs(recon - drive.rgb.astype(np.float32) / 255.0).mean(-1)  # (T, h, w)
-        scenario = AnoVoxScenario(path, every=config.frame_step)
         anomaly, road = label_masks(scenario, config.image_height, config.image_width)
         for name, mask in (("anomaly", anomaly), ("road", road)):
             sums[name] += float(error[mask].sum())
             pixels[name] += int(mask.sum())
-    if paths:
-        figures["anomalous_drives"] = len(paths)
+    if labelled:
+        figures["anomalous_drives"] = len(labelled)
         figures["anomaly_pixels"] = pixels["anomaly"]
         figures["anomaly_error"] = sums["anomaly"] / max(pixels["anomaly"], 1)
         figures["road_error"] = sums["road"] / max(pixels["road"], 1)

@@ -44,18 +44,17 @@ class FeatureTrainingConfig:
     covariance_weight: float = 1.0
 
 
-def load_normal_rgb(data: Path, cfg: FeatureTrainingConfig) -> tuple[np.ndarray, list[str]]:
+def load_normal_rgb(data: Path, cfg: FeatureTrainingConfig, topics: str | None = None) -> tuple[np.ndarray, list[str]]:
     """(N, h, w, 3) uint8 camera frames of the normal training drives, resized to `cfg.size` and
     spread evenly over them (at most `cfg.max_frames`, the last `cfg.holdout` drives left out), and
-    the names of the held-out drives. The segment net's training config has the same three fields."""
-    from umad_common.datasets.anovox import find_scenarios, label_free_scenario, normal_root
+    the names of the held-out drives. The segment net's training config has the same three fields.
+    `topics`: a recording's topic per role (`umad_common.datasets.topics`)."""
+    from umad_common.datasets.drive import normal_root, training_drives
 
     root = normal_root(data)
-    paths = find_scenarios(root)
-    if not paths:
-        raise FileNotFoundError(f"{root}: no Scenario_* folders with normal drives found")
-    keep = len(paths) - min(cfg.holdout, len(paths) - 1)
-    scenarios = [label_free_scenario(path, keep=("rgb",)) for path in paths[:keep]]
+    drives = training_drives(data, topics, keep=("rgb",))
+    keep = len(drives) - min(cfg.holdout, len(drives) - 1)
+    scenarios = drives[:keep]
     size, max_frames = cfg.size, cfg.max_frames
     total = sum(len(s) for s in scenarios)
     stride = max(1, int(np.ceil(total / max_frames)))
@@ -72,7 +71,7 @@ def load_normal_rgb(data: Path, cfg: FeatureTrainingConfig) -> tuple[np.ndarray,
         len(scenarios),
         root,
     )
-    return np.stack(frames), [p.name for p in paths[keep:]]
+    return np.stack(frames), [d.name for d in drives[keep:]]
 
 
 def gaussian_blur(x: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:

@@ -162,15 +162,14 @@ def _train(
     return model.cpu().eval(), record
 
 
-def load_normal_frames(data: Path, cfg: MnadConfig, max_frames: int) -> np.ndarray:
+def load_normal_frames(data: Path, cfg: MnadConfig, max_frames: int, topics: str | None = None) -> np.ndarray:
     """(N, h, w, 3) uint8 camera frames of the normal drives (DATA/normal when present), resized to
-    the model size and spread evenly over all drives. Label files are never opened."""
-    from umad_common.datasets.anovox import find_scenarios, label_free_scenario, normal_root
+    the model size and spread evenly over all drives. Label files are never opened. `topics`: a
+    recording's topic per role (`umad_common.datasets.topics`)."""
+    from umad_common.datasets.drive import normal_root, training_drives
 
     root = normal_root(Path(data))
-    scenarios = [label_free_scenario(path, keep=("rgb",)) for path in find_scenarios(root)]
-    if not scenarios:
-        raise FileNotFoundError(f"{root}: no Scenario_* folders with normal drives found")
+    scenarios = training_drives(data, topics, keep=("rgb",))
     total = sum(len(s) for s in scenarios)
     stride = max(1, int(np.ceil(total / max_frames)))
     frames = [

@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from umad_common.datasets.drive import Drive, training_drives
 from umad_common.datasets.sensor_rig import SensorRig
 from umad_common.models.device import bf16_supported
 from umad_common.models.weights import weight_paths
@@ -113,7 +114,7 @@ class DriveArrays:
         return len(self.rgb)
 
 
-def load_drive(scenario, config: WorldModelConfig) -> DriveArrays:
+def load_drive(scenario: Drive, config: WorldModelConfig) -> DriveArrays:
     """Read a scenario's model inputs (camera, lidar, ego, route) at model size, and with a lidar head
     the lidar view its loss compares (projected with the drive's sensor setup, AnoVox's without one)."""
     rig = SensorRig.from_sensors(scenario.sensors, scenario.name) if scenario.sensors else SensorRig.anovox()
@@ -139,20 +140,17 @@ def load_drive(scenario, config: WorldModelConfig) -> DriveArrays:
 
 
 def load_normal_drives(
-    data: Path, config: WorldModelConfig, holdout: int, progress: bool = True
+    data: Path, config: WorldModelConfig, holdout: int, progress: bool = True, topics: str | None = None
 ) -> tuple[list[DriveArrays], list[str]]:
-    """All normal drives under DATA except the last `holdout`; returns (drives, held-out names)."""
-    from umad_common.datasets.anovox import find_scenarios, label_free_scenario, normal_root
-
-    paths = find_scenarios(normal_root(data))
-    if not paths:
-        raise FileNotFoundError(f"{normal_root(data)}: no Scenario_* folders; expected AnoVox normal drives")
-    holdout = min(holdout, len(paths) - 1)
-    train_paths, held = paths[: len(paths) - holdout], paths[len(paths) - holdout :]
+    """All normal drives under DATA except the last `holdout`; returns (drives, held-out names).
+    `topics`: a recording's topic per role (`umad_common.datasets.topics`)."""
+    normal = training_drives(data, topics, config.frame_step)
+    holdout = min(holdout, len(normal) - 1)
+    train_drives, held = normal[: len(normal) - holdout], normal[len(normal) - holdout :]
     drives = []
-    for path in tqdm(train_paths, desc="loading drives", unit="drive", disable=not progress):
-        drives.append(load_drive(label_free_scenario(path, config.frame_step), config))
-    return drives, [p.name for p in held]
+    for drive in tqdm(train_drives, desc="loading drives", unit="drive", disable=not progress):
+        drives.append(load_drive(drive, config))
+    return drives, [d.name for d in held]
 
 
 def observation_batch(
@@ -437,6 +435,7 @@ def train_world_model(
     command: str | None = None,
     device: str | torch.device = "cpu",
     rank: Rank | None = None,
+    topics: str | None = None,
 ) -> dict:
     """Train on the normal drives under `data` on `device`; writes OUT.safetensors, OUT.json, OUT.train.pt.
 
@@ -444,7 +443,8 @@ def train_world_model(
     Returns the JSON record written beside the weights (configs, held-out drives, loss history, time).
     `rank`: this process's place in a training across processes (`umad_common.training.distributed`,
     which starts the ranks); each rank runs `threads` threads and trains on its share of every
-    step's `batch_size` windows, which must split evenly over the ranks. None: one process.
+    step's `batch_size` windows, which must split evenly over the ranks. None: one process. `topics`:
+    a recording's topic per role (`umad_common.datasets.topics`).
     """
     rank = rank or Rank()
     torch.set_num_threads(threads)
@@ -470,7 +470,7 @@ def train_world_model(
             raise ValueError(f"{checkpoint_path}: trained with seed {checkpoint['seed']}; resume asked for seed {seed}")
 
     started = time.perf_counter()
-    drives, heldout = load_normal_drives(Path(data), model_config, train.holdout, progress=rank.writes)
+    drives, heldout = load_normal_drives(Path(data), model_config, train.holdout, rank.writes, topics)
     frames = sum(len(d) for d in drives)
     log.info("%d normal drives, %d frames in memory (held out: %s)", len(drives), frames, heldout)
 
@@ -606,6 +606,7 @@ def fit_lidar_head(
     train_config: TrainConfig | None = None,
     command: str | None = None,
     device: str | torch.device = "cpu",
+    topics: str | None = None,
 ) -> dict:
     """Give a trained world model a lidar head: the model's other weights stay as they are (frozen, so
     its images and every camera map stay bit for bit the same) and the head learns to decode the lidar
@@ -635,7 +636,7 @@ def fit_lidar_head(
     optimizer = torch.optim.Adam(model.lidar_decoder.parameters(), lr=train.learning_rate)
 
     started = time.perf_counter()
-    drives, heldout = load_normal_drives(Path(data), config, train.holdout)
+    drives, heldout = load_normal_drives(Path(data), config, train.holdout, topics=topics)
     steps_per_epoch = guaranteed_windows(drives, train.sequence_length) // train.batch_size
     if steps_per_epoch == 0:
         raise ValueError(f"{data}: fewer than {train.batch_size} windows of {train.sequence_length} frames")
