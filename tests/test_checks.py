@@ -18,7 +18,10 @@ from umad_common.cli import build_parser, main
 from umad_common.commands.checks import InputError
 from umad_common.commands.evaluate import check_inputs, every_and_layout
 
-ANOVOX_EXPECTED = "expected an AnoVox folder: Scenario_* drive folders, or anomalous/ and normal/"
+DRIVES_EXPECTED = (
+    "expected drives: AnoVox Scenario_* folders, ROS 2 bags (a rosbag2 folder, .mcap or .db3), MCAPs with Foxglove "
+    "schemas, or a folder of them; or anomalous/ and normal/"
+)
 
 
 def drive(folder: Path, *sensors: str) -> Path:
@@ -58,7 +61,7 @@ def refused(tmp_path, monkeypatch, capsys):
 
 def test_eval_refuses_a_data_folder_that_does_not_exist(refused, tmp_path):
     assert refused("eval", "--data", str(tmp_path / "none"), "--out", "out") == [
-        f"umad eval: --data {tmp_path / 'none'}: no such folder; {ANOVOX_EXPECTED} holding them as "
+        f"umad eval: --data {tmp_path / 'none'}: no such folder or file; {DRIVES_EXPECTED} holding them as "
         "`umad generate synthetic` writes"
     ]
 
@@ -67,7 +70,7 @@ def test_eval_says_a_data_folder_has_only_normal_drives(refused, tmp_path):
     drive(tmp_path / "data" / "normal" / "Scenario_a", "SEMANTIC_IMG")
     [line] = refused("eval", "--data", str(tmp_path / "data"), "--out", "out")
     assert (
-        f"--data {tmp_path / 'data'}: no anomalous drives: only normal ones (1 in normal/); {ANOVOX_EXPECTED}" in line
+        f"--data {tmp_path / 'data'}: no anomalous drives: only normal ones (1 in normal/); {DRIVES_EXPECTED}" in line
     )
 
 
@@ -75,7 +78,7 @@ def test_eval_refuses_drives_without_labels(refused, tmp_path):
     drive(tmp_path / "data" / "Scenario_a", "SEMANTIC_IMG")
     drive(tmp_path / "data" / "Scenario_b")
     [line] = refused("eval", "--data", str(tmp_path / "data"), "--out", "out")
-    assert "1 of 2 drives have no semantic camera, the anomaly labels (e.g. Scenario_b); expected SEMANTIC_IMG/" in line
+    assert "1 of 2 drives have no anomaly labels (e.g. Scenario_b); expected SEMANTIC_IMG/" in line
 
 
 def test_eval_names_the_operators_that_run_without_lidar(tmp_path, capsys, monkeypatch):

@@ -13,14 +13,13 @@ from umad_common.datasets.anovox import (
     DEPTH_SCALE,
     GENERIC_ANOMALY_TAG,
     AnoVoxScenario,
-    DatasetError,
     decode_depth,
     encode_depth,
-    find_scenarios,
     read_pcd,
     write_benchmark_scenario,
     write_pcd,
 )
+from umad_common.datasets.drive import DatasetError, find_drives
 from umad_common.datasets.synthetic.anomalies import ANOMALY_TAGS, CATEGORIES
 from umad_common.datasets.synthetic.generator import generate_benchmark, plan_benchmark
 from umad_common.datasets.synthetic.render import WEATHER_NAMES, CameraSpec
@@ -73,7 +72,7 @@ def test_scenarios_rendered_in_two_processes_give_the_same_bytes(tmp_path, gener
 
 
 def test_layout_has_generator_folders_and_nonzero_frame_ids(generated):
-    folders = find_scenarios(generated)
+    folders = find_drives(generated)
     assert [p.parent.name for p in folders] == ["anomalous", "normal"]
     names = {p.name.split("(")[0] for p in folders[0].iterdir()}
     assert {
@@ -189,7 +188,7 @@ def test_ego_actions_follow_curvature_and_motion():
 
 
 def test_loader_reads_what_the_renderer_produced(generated):
-    folder = find_scenarios(generated / "anomalous")[0]
+    folder = find_drives(generated / "anomalous")[0]
     scenario = AnoVoxScenario(folder)
     plan = next(p for p in plan_benchmark(1, 1, 7) if p.split == "anomalous")
     world = SyntheticScenario(plan.seed, 5, plan.anomaly, plan.weather, camera=SMALL)
@@ -211,7 +210,7 @@ def test_loader_reads_what_the_renderer_produced(generated):
 
 @pytest.mark.parametrize("binary", [True, False])
 def test_benchmark_layout_reads_the_same_data(tmp_path, generated, binary):
-    source = AnoVoxScenario(find_scenarios(generated / "anomalous")[0])
+    source = AnoVoxScenario(find_drives(generated / "anomalous")[0])
     written = write_benchmark_scenario(source, tmp_path, source.name, binary_pcd=binary)
     copy = AnoVoxScenario(written)
     assert copy.layout == "benchmark" and copy.frame_ids == source.frame_ids
@@ -249,7 +248,7 @@ def test_ascii_pcd_without_intensity(tmp_path):
 def copy_scenario(generated: Path, tmp_path: Path) -> Path:
     import shutil
 
-    source = find_scenarios(generated / "normal")[0]
+    source = find_drives(generated / "normal")[0]
     return Path(shutil.copytree(source, tmp_path / source.name))
 
 
@@ -298,8 +297,8 @@ def test_missing_key_and_missing_folders(tmp_path, generated):
     with pytest.raises(DatasetError, match="no camera folder"):
         AnoVoxScenario(tmp_path)
     with pytest.raises(DatasetError, match="no such folder"):
-        find_scenarios(tmp_path / "nowhere")
-    assert find_scenarios(generated / "Scenario_Configuration_Files") == []
+        find_drives(tmp_path / "nowhere")
+    assert find_drives(generated / "Scenario_Configuration_Files") == []
 
 
 def test_cli_writes_benchmark_and_preview(tmp_path):
@@ -321,7 +320,7 @@ def test_cli_writes_benchmark_and_preview(tmp_path):
     assert main([*args, "--preview", "--seed", "2"]) == 0
     assert (tmp_path / "preview.png").is_file()
     assert (tmp_path / "Scenario_Configuration_Files" / "scenario_config_map_Synthetic.json").is_file()
-    assert AnoVoxScenario(find_scenarios(tmp_path / "normal")[0])[0].rgb.shape == (48, 64, 3)
+    assert AnoVoxScenario(find_drives(tmp_path / "normal")[0])[0].rgb.shape == (48, 64, 3)
     assert main(args) == 2  # refuses to write into a folder that already holds scenarios
     with pytest.raises(SystemExit):
         main(["generate", "synthetic", str(tmp_path / "x"), "--size", "64by48"])
@@ -371,7 +370,7 @@ def test_cli_writes_the_stress_set(tmp_path):
     config = json.loads((tmp_path / "Scenario_Configuration_Files" / "scenario_config_map_Synthetic.json").read_text())
     assert config["set"] == "stress" and config["seed"] == 30 and config["wait_m"] == [20.0, 40.0]
     assert [s["weather"] for s in config["scenarios"]] == ["cloudy", "fog", "clear_noon"]
-    assert len(find_scenarios(tmp_path / "normal")) == 2 and len(find_scenarios(tmp_path / "anomalous")) == 1
+    assert len(find_drives(tmp_path / "normal")) == 2 and len(find_drives(tmp_path / "anomalous")) == 1
 
 
 def test_light_stress_plans_show_clear_light_rarely_in_normal_drives_and_always_in_anomalous_ones():
@@ -435,7 +434,7 @@ def test_cli_writes_the_light_stress_set(tmp_path):
     assert (tmp_path / "preview.png").is_file()
     from umad_common.datasets.anovox import scenario_weathers
 
-    weathers = scenario_weathers(find_scenarios(tmp_path / "anomalous")[0])  # what per_scenario.md names
+    weathers = scenario_weathers(find_drives(tmp_path / "anomalous")[0])  # what per_scenario.md names
     assert weathers == {f"Scenario_{s['scenario_id']}": s["weather"] for s in config["scenarios"]}
     with pytest.raises(SystemExit):
         main(["generate", "synthetic", str(tmp_path / "x"), "--stress", "--stress-light"])

@@ -442,7 +442,8 @@ def test_calibrate_uses_heldout_normal_drives_and_never_reads_labels(tmp_path, f
     import argparse
 
     from umad_common.commands import calibrate
-    from umad_common.datasets.anovox import AnoVoxScenario, DatasetError
+    from umad_common.datasets.anovox import AnoVoxScenario
+    from umad_common.datasets.drive import DatasetError
     from umad_common.models.world_model import WorldModel, WorldModelConfig, save_world_model
 
     normal = tmp_path / "bench" / "normal"
@@ -460,7 +461,7 @@ def test_calibrate_uses_heldout_normal_drives_and_never_reads_labels(tmp_path, f
     out = tmp_path / "calibration.json"
     args = argparse.Namespace(
         data=tmp_path / "bench", world_model=tmp_path / "wm", features=feature_file, vgg_weights=None, metric=[],
-        out=out, frames=4, horizon=2, threads=1,
+        out=out, frames=4, horizon=2, threads=1, topics=None,
     )  # fmt: skip
     assert calibrate.run(args) == 0
     calibration = load_calibration(out)
@@ -480,7 +481,16 @@ def test_train_features_command_reads_only_training_rgb(tmp_path):
     write_generator_scenario(normal, "Scenario_b", 2, seed=1)
     out = tmp_path / "features.safetensors"
     args = argparse.Namespace(
-        data=tmp_path / "bench", out=out, epochs=1, seed=0, frames=100, batch_size=2, holdout=1, threads=1, device="cpu"
+        data=tmp_path / "bench",
+        out=out,
+        epochs=1,
+        seed=0,
+        frames=100,
+        batch_size=2,
+        holdout=1,
+        threads=1,
+        device="cpu",
+        topics=None,
     )
     assert train_features.run(args) == 0
     _, record = load_feature_net(out)

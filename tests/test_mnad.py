@@ -119,13 +119,14 @@ def test_operator_outputs_map_at_model_size(tmp_path):
 
 def test_train_command_reads_only_normal_drives(tmp_path):
     from umad_common.cli import main as umad_main
-    from umad_common.datasets.anovox import AnoVoxFrame, EgoState, write_benchmark_scenario
+    from umad_common.datasets.anovox import write_benchmark_scenario
+    from umad_common.datasets.drive import DriveFrame, EgoState
 
     def drive(n, seed):
         rng = np.random.default_rng(seed)
         for i in range(n):
             rgb = rng.integers(0, 255, (64, 96, 3), dtype=np.uint8)
-            yield AnoVoxFrame(100 + i, rgb, None, None, None, np.zeros((64, 96), np.uint8), None, EgoState(), None)
+            yield DriveFrame(100 + i, rgb, None, None, None, np.zeros((64, 96), np.uint8), None, EgoState(), None)
 
     write_benchmark_scenario(drive(3, 0), tmp_path / "normal", "Scenario_n1")
     write_benchmark_scenario(drive(3, 1), tmp_path / "normal", "Scenario_n2")

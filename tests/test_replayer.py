@@ -11,7 +11,8 @@ from pydantic import ValidationError
 
 from umad_common.dataflow.messages import Message, decode, encode
 from umad_common.dataflow.operator import Context, load_operator_class
-from umad_common.datasets.anovox import AnoVoxScenario, DatasetError, find_scenarios, write_benchmark_scenario
+from umad_common.datasets.anovox import AnoVoxScenario, write_benchmark_scenario
+from umad_common.datasets.drive import DatasetError, find_drives
 from umad_common.datasets.synthetic.generator import generate_benchmark
 from umad_operators.replayer import Replayer
 
@@ -29,7 +30,7 @@ def test_kind_is_registered():
 
 def test_frames_follow_the_topic_contract(generated):
     frames = list(Replayer({"source": str(generated)}).frames())
-    scenarios = find_scenarios(generated)
+    scenarios = find_drives(generated)
     assert [f.run for f in frames] == [p.name for p in scenarios for _ in range(6)]
     assert [f.seq for f in frames] == list(range(6)) * 2
     assert [f.stamp_ns for f in frames[:3]] == [0, 100_000_000, 200_000_000]
@@ -66,7 +67,7 @@ def test_anomalous_run_carries_anomaly_truth(generated):
 
 
 def test_every_max_frames_and_scenario_filter(generated):
-    name = find_scenarios(generated / "normal")[0].name
+    name = find_drives(generated / "normal")[0].name
     frames = list(Replayer({"source": str(generated), "every": 2, "max_frames": 2, "scenarios": [name]}).frames())
     ids = AnoVoxScenario(generated / "normal" / name).frame_ids
     assert [(f.run, f.seq) for f in frames] == [(name, 0), (name, 1)]
@@ -75,7 +76,7 @@ def test_every_max_frames_and_scenario_filter(generated):
 
 
 def test_score_every_marks_the_frames_nobody_scores(generated):
-    name = find_scenarios(generated / "anomalous")[0].name
+    name = find_drives(generated / "anomalous")[0].name
     replayer = Replayer({"source": str(generated / "anomalous"), "score_every": 3, "scenarios": [name]})
     frames = list(replayer.frames())
     assert [f.seq for f in frames] == list(range(len(AnoVoxScenario(generated / "anomalous" / name))))
@@ -87,7 +88,7 @@ def test_score_every_marks_the_frames_nobody_scores(generated):
 
 
 def test_single_scenario_folder_and_relative_source(generated):
-    folder = find_scenarios(generated / "anomalous")[0]
+    folder = find_drives(generated / "anomalous")[0]
     replayer = Replayer({"source": f"anomalous/{folder.name}"}, Context(base_dir=generated))
     assert list(replayer.scenarios) == [folder.name]
 
@@ -108,7 +109,7 @@ def test_frame_at_repeats_what_frames_yielded(generated):
 
 
 def test_benchmark_layout_and_missing_modalities(tmp_path, generated):
-    source = AnoVoxScenario(find_scenarios(generated / "anomalous")[0])
+    source = AnoVoxScenario(find_drives(generated / "anomalous")[0])
     write_benchmark_scenario(source, tmp_path / "bench", source.name)
     frames = list(Replayer({"source": str(tmp_path / "bench")}).frames())
     assert len(frames) == 6
@@ -127,7 +128,7 @@ def test_benchmark_layout_and_missing_modalities(tmp_path, generated):
 
 
 def test_bad_sources_fail_at_construction(tmp_path, generated):
-    with pytest.raises(DatasetError, match="no AnoVox scenarios"):
+    with pytest.raises(DatasetError, match="no drives found"):
         Replayer({"source": str(tmp_path)})
     with pytest.raises(DatasetError, match="no such folder"):
         Replayer({"source": str(tmp_path / "absent")})

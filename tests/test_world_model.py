@@ -575,12 +575,12 @@ def test_evaluation_reports_psnr_per_step_and_anomaly_road_ratio(tiny_benchmark)
 
 
 def test_evaluation_predictions_are_the_prior_rolled_from_k_steps_back(tiny_benchmark):
-    from umad_common.datasets.anovox import label_free_scenario
+    from umad_common.datasets.drive import label_free_drive
     from umad_common.training.evaluate_world_model import filter_drive, predict_drive
     from umad_common.training.train_world_model import load_drive
 
     model = tiny_model(ground_flow=True)
-    drive = load_drive(label_free_scenario(tiny_benchmark / "normal" / "Scenario_n0"), model.config)
+    drive = load_drive(label_free_drive(tiny_benchmark / "normal" / "Scenario_n0"), model.config)
     posterior, _ = filter_drive(model, drive, chunk=5)  # chunked filtering = one pass
     actions = torch.from_numpy(drive.action)[None]  # (1, T, 2) the action taken after frame t
     with torch.no_grad():

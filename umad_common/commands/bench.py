@@ -1,4 +1,4 @@
-"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|record|control|live|train|all] [--out FILE.json]`;
+"""`umad bench [bus|metrics|differences|predictors|scaling|segmenters|pipeline|record|control|live|train|data|all] [--out FILE.json]`;
 `umad bench scaling --op world_model` replicates the world model instead of the perceptual difference.
 
 Each bench measures both sides of its ratio in the same run on the same machine, so the ratio is
@@ -25,6 +25,7 @@ BENCHES = (
     "control",
     "live",
     "train",
+    "data",
 )
 HUB_BENCHES = {"bus", "scaling", "record", "live", "control", "pipeline"}  # they start graphs on --hub
 
@@ -160,6 +161,10 @@ def _run_one(name: str, args) -> dict:
         from umad_common.benchmarks.train import bench_train
 
         return bench_train(processes=args.nproc, data=args.data)
+    if name == "data":
+        from umad_common.benchmarks.data import bench_data
+
+        return bench_data(frames=args.frames or 100)
     from umad_common.benchmarks.pipeline import bench_pipeline
 
     return bench_pipeline(frames=args.frames or 30, hub=args.hub)

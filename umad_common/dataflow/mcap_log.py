@@ -1,7 +1,10 @@
 """MCAP logs of the bus: the recorder that writes them and the reader that survives a truncated file.
 
 Every bus message is stored as its exact payload bytes: one channel per Zenoh key,
-`message_encoding` "msgpack", `sequence` = the frame's seq, `publish_time` = the source stamp. The
+`message_encoding` "msgpack", `sequence` = the frame's seq, `publish_time` = the source stamp, and
+`log_time` = the source stamp too where it is a recording's own clock (a ROS 2 bag's or an MCAP's:
+after RECORDING_CLOCK_START_NS), so the log opens in Foxglove on the recording's timeline beside the
+recording itself; the time of writing otherwise (AnoVox drives are stamped from 0). The
 graph and the package version are stored as metadata `umad`; whether the recording is complete (the
 payloads it lost and the frames each channel lacks, see `umad_common/dataflow/recording.py`) as metadata
 `umad_recording`, written when the log is closed. Foxglove views (`viz/...` channels, JSON
@@ -32,6 +35,12 @@ from umad_common.dataflow.messages import MessageError, decode
 RECORDING_METADATA = "umad_recording"  # the recorder's account of what it could not record
 
 log = logging.getLogger("umad.record")
+RECORDING_CLOCK_START_NS = 946_684_800 * 10**9  # 2000-01-01: a stamp after it is a recording's own clock
+
+
+def log_time_of(stamp_ns: int) -> int:
+    """A message's MCAP log time: its stamp where that is a recording's clock, else now."""
+    return stamp_ns if stamp_ns >= RECORDING_CLOCK_START_NS else time.time_ns()
 
 
 class LogError(ValueError):
@@ -100,7 +109,7 @@ class McapRecorder:
             if channel is None:
                 encoding = "json" if "/_ctl/" in key else "msgpack"
                 channel = self._channels[key] = self._writer.register_channel(key, encoding, 0)
-            self._writer.add_message(channel, time.time_ns(), bytes(payload), stamp, seq)
+            self._writer.add_message(channel, log_time_of(stamp), bytes(payload), stamp, seq)
             self.count += 1
         return msg
 
@@ -116,7 +125,7 @@ class McapRecorder:
             if channel is None:
                 channel = self._channels[topic] = self._writer.register_channel(topic, "json", schema_id)
             self._writer.add_message(
-                channel, time.time_ns(), json.dumps(obj, separators=(",", ":")).encode(), stamp_ns, 0
+                channel, log_time_of(stamp_ns), json.dumps(obj, separators=(",", ":")).encode(), stamp_ns, 0
             )
 
     def _viz_worker(self, mask_sources: dict[str, str]) -> None:

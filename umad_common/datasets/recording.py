@@ -383,13 +383,14 @@ class RecordingDrive(Drive):
             order = np.argsort(stamps, kind="stable")
             stamps, samples = stamps[order], [samples[i] for i in order]
             seconds = (stamps - stamps[0]) / 1e9 if len(stamps) else stamps
-            if samples and samples[0].pose is not None:  # poses: speed and yaw rate by differences
+            if samples and samples[0].pose is not None:  # poses: speed and yaw rate over the step that ends there
                 poses = np.array([s.pose for s in samples])
-                unique = len(seconds) > 1 and np.all(np.diff(seconds) > 0)
-                dx = np.gradient(poses[:, 0], seconds) if unique else np.zeros(len(poses))
-                dy = np.gradient(poses[:, 1], seconds) if unique else np.zeros(len(poses))
-                v = np.hypot(dx, dy)
-                yaw_rate = np.gradient(np.unwrap(poses[:, 2]), seconds) if unique else np.zeros(len(poses))
+                v, yaw_rate = np.zeros(len(poses)), np.zeros(len(poses))
+                if len(poses) > 1 and np.all(np.diff(seconds) > 0):
+                    dt = np.diff(seconds)
+                    v[1:] = np.hypot(*np.diff(poses[:, :2], axis=0).T) / dt
+                    yaw_rate[1:] = np.diff(np.unwrap(poses[:, 2])) / dt
+                    v[0], yaw_rate[0] = v[1], yaw_rate[1]
             else:
                 v = np.array([s.speed for s in samples])
                 yaw_rate = np.array([s.yaw_rate for s in samples])

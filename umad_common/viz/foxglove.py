@@ -186,11 +186,18 @@ def compressed_image(picture: np.ndarray, stamp_ns: int, frame_id: str) -> dict:
 def lidar_mount_pose(sensors: dict | None) -> dict:
     """The lidar's pose in the ego frame (x forward, y left, z up) from the replayer's `sensors`
     meta (CARLA axes: y right; rotation (pitch, yaw, roll) in degrees, yaw and pitch positive to the
-    right and up, roll positive right side down); AnoVox's mount without one."""
+    right and up, roll positive right side down; or a recording's `axes` matrix, the lidar's axes as
+    columns in the ego frame); AnoVox's mount without one."""
     lidar = (sensors or {}).get("lidar") or {"location": ANOVOX_LIDAR_MOUNT, "rotation": (0.0, 0.0, 0.0)}
     x, y, z = (float(v) for v in lidar["location"])
+    position = {"x": x, "y": -y, "z": z}
+    if lidar.get("axes") is not None:
+        from scipy.spatial.transform import Rotation
+
+        qx, qy, qz, qw = Rotation.from_matrix(lidar["axes"]).as_quat()
+        return {"position": position, "orientation": {"x": float(qx), "y": float(qy), "z": float(qz), "w": float(qw)}}
     pitch, yaw, roll = (math.radians(float(v)) for v in lidar.get("rotation", (0.0, 0.0, 0.0)))
-    return {"position": {"x": x, "y": -y, "z": z}, "orientation": _quaternion(roll, -pitch, -yaw)}
+    return {"position": position, "orientation": _quaternion(roll, -pitch, -yaw)}
 
 
 def point_cloud(points: np.ndarray, stamp_ns: int, sensors: dict | None) -> dict:
