@@ -338,8 +338,9 @@ def test_eval_on_bags_gives_the_table_of_the_same_drives_as_anovox_folders(tmp_p
 
 
 @pytest.mark.slow
-def test_train_world_model_and_calibrate_run_on_bags(synthetic, tmp_path):
-    for path in find_drives(synthetic / "normal"):
+def test_train_world_model_and_calibrate_run_on_bags(tmp_path):
+    generate_benchmark(tmp_path / "gen", normal=2, anomalous=0, frames=12, seed=3, size=SIZE)
+    for path in find_drives(tmp_path / "gen" / "normal"):
         write_rosbag2(open_drive(path), tmp_path / "bags" / "normal" / path.name, control=None)
     config = tmp_path / "tiny.json"
     config.write_text(
@@ -362,8 +363,15 @@ def test_train_world_model_and_calibrate_run_on_bags(synthetic, tmp_path):
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     record = json.loads(model.with_suffix(".json").read_text())
-    assert record["heldout_drives"] == [sorted(p.name for p in find_drives(synthetic / "normal"))[-1]]
+    assert record["heldout_drives"] == [sorted(p.name for p in find_drives(tmp_path / "gen" / "normal"))[-1]]
     assert "--topics camera=/camera/image_raw" in record["command"]
+    result = run_umad(
+        "calibrate", str(tmp_path / "bags"), "--world-model", str(model.with_suffix(".safetensors")),
+        "--out", str(tmp_path / "calibration.json"), "--frames", "4", "--threads", "1", timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    calibration = json.loads((tmp_path / "calibration.json").read_text())
+    assert calibration["info"]["drives"] == record["heldout_drives"] and calibration["info"]["labels_read"] is False
 
 
 @pytest.mark.slow

@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
-from umad_common.datasets.recording_messages import EXTRA_DEFINITIONS
+from umad_common.datasets.recording import ros_typestore
 from umad_common.datasets.sensor_rig import SensorRig
 from umad_common.datasets.synthetic.scenario import MAX_ACCEL, MAX_DECEL, MAX_STEER_RAD, WHEELBASE_M
 
@@ -62,7 +62,6 @@ CLOUD_FIELDS = ("x", "y", "z", "intensity")  # each FLOAT32 at 4 * index
 FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32 and foxglove.NumericType FLOAT32 alike
 CLOUD_PADDING_BYTE = 0xAB  # fills `cloud_padding` bytes after each point: a reader ignoring point_step reads junk
 COMPRESSIONS = ("zstd", "lz4", "none")
-ROS_STORE = "ros2_jazzy"  # rosbags' typestore of the types ROS ships; bags are written in rosbag2 version 9
 ROS_CONTROL_TYPES = {
     "carla": "carla_msgs/msg/CarlaEgoVehicleControl",
     "ackermann": "ackermann_msgs/msg/AckermannDriveStamped",
@@ -261,19 +260,6 @@ def _cloud_bytes(points: np.ndarray, padding: int) -> np.ndarray:
 
 
 # ROS 2 ---------------------------------------------------------------------------------------------
-
-
-def ros_typestore() -> Typestore:
-    """rosbags' typestore of ROS_STORE with the control types registered (their definitions:
-    `umad_common.datasets.recording_messages.EXTRA_DEFINITIONS`), so a bag embeds them."""
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    typestore = get_typestore(Stores(ROS_STORE))
-    types = {}
-    for name, definition in EXTRA_DEFINITIONS.items():
-        types.update(get_types_from_msg(definition, name))
-    typestore.register(types)
-    return typestore
 
 
 class RosMessages:
