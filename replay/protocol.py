@@ -65,6 +65,61 @@ def operator_params(graph: dict[str, Any], sets: dict[str, dict[str, Any]]) -> d
     return out
 
 
+def graph_operators(metadata: dict[str, str]) -> dict[str, tuple[str, dict[str, Any]]]:
+    """The logged graph's operators: op id -> (kind, parameters with the launcher's `--set` overrides
+    and the schema's defaults); {} where the log holds no graph."""
+    graph = yaml.safe_load(metadata.get("graph") or "") or {}
+    sets_by_op: dict[str, dict[str, Any]] = {}
+    for assignment in json.loads(metadata.get("sets") or "[]"):  # the launcher's `--set OP.PARAM=VALUE` list
+        op, param, value = parse_assignment(assignment)
+        sets_by_op.setdefault(op, {})[param] = value
+    return operator_params(graph, sets_by_op)
+
+
+def shipped_configuration(metadata: dict[str, str]) -> dict[str, Any] | None:
+    """What the graph as run produced, as the sweep names configurations: the fusion weights (metric ->
+    weight > 0, as the fusion operator had them), the label-free segmenter op and the refinement mode.
+
+    The shipped configuration is the first mask refiner in the graph whose masks are not the ground
+    truth's (in the default graph `refine_unsup`: `geometry` masks, `mean_pixel`); a graph without one
+    ships its fusion's map ("none": no mask). None where the log holds no graph or no fusion.
+    """
+    ops = graph_operators(metadata)
+    graph = yaml.safe_load(metadata.get("graph") or "") or {}
+    inputs = {op["id"]: op.get("inputs") or {} for op in graph.get("operators", [])}
+
+    def source_op(op_id: str, port: str) -> str | None:
+        wired = inputs.get(op_id, {}).get(port)
+        return wired.split("/")[0] if isinstance(wired, str) else None
+
+    fusions = [op_id for op_id, (kind, _) in ops.items() if kind == "fusion"]
+    for op_id, (kind, params) in ops.items():
+        segmenter = source_op(op_id, "masks")
+        if kind != "mask_refiner" or segmenter not in ops or ops[segmenter][1].get("method") == "gt":
+            continue
+        fusion = source_op(op_id, "fused")
+        if fusion in fusions:
+            return {
+                "refiner": op_id,
+                "fusion": fusion,
+                "weights": {m: w for m, w in ops[fusion][1]["weights"].items() if w > 0},
+                "segmenter": segmenter,
+                "method": ops[segmenter][1].get("method"),
+                "mode": params["mode"],
+            }
+    if not fusions:
+        return None
+    weights = {m: w for m, w in ops[fusions[0]][1]["weights"].items() if w > 0}
+    return {
+        "refiner": None,
+        "fusion": fusions[0],
+        "weights": weights,
+        "segmenter": None,
+        "method": None,
+        "mode": "none",
+    }
+
+
 def run_protocol(metadata: dict[str, str], map_notes: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """The run's data, frame sampling, models and perceptual network from the log's `umad` metadata,
     and each drive's weather where the data folder's scenario config names it (read from the data
@@ -78,18 +133,13 @@ def run_protocol(metadata: dict[str, str], map_notes: dict[str, dict[str, Any]])
     Returns:
         A JSON-ready dict; empty values where the log holds no graph (a log not written by the launcher).
     """
-    graph = yaml.safe_load(metadata.get("graph") or "") or {}
-    sets_by_op: dict[str, dict[str, Any]] = {}
-    for assignment in json.loads(metadata.get("sets") or "[]"):  # the launcher's `--set OP.PARAM=VALUE` list
-        op, param, value = parse_assignment(assignment)
-        sets_by_op.setdefault(op, {})[param] = value
     base = Path(metadata.get("base_dir") or ".")
 
     def resolve(path: str) -> Path:
         return resolve_path(path, base)
 
     protocol: dict[str, Any] = {"version": metadata.get("version"), "models": {}, "label_resize": LABEL_RESIZE}
-    for op_id, (kind, params) in operator_params(graph, sets_by_op).items():
+    for op_id, (kind, params) in graph_operators(metadata).items():
         if kind == "segmenter":
             protocol.setdefault("segmenters", {})[op_id] = segmenter_record(params, resolve)
         elif kind == "replayer":
@@ -106,6 +156,9 @@ def run_protocol(metadata: dict[str, str], map_notes: dict[str, dict[str, Any]])
             protocol["models"]["perceptual"] = perceptual_network(params, resolve)
         if kind == "difference":
             protocol.setdefault("normalization", {})[params.get("metric")] = params.get("normalization")
+    shipped = shipped_configuration(metadata)
+    if shipped is not None:
+        protocol["shipped"] = shipped
     extractor = map_notes.get("perceptual", {}).get("extractor")
     if extractor and "perceptual" in protocol["models"]:
         protocol["models"]["perceptual"]["extractor_in_maps"] = extractor

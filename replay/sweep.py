@@ -6,7 +6,8 @@ and `refine`, so a sweep row equals the live pipeline's numbers) and streams its
 `PixelMetrics`: memory is one 1 MiB histogram per configuration plus a few frames in flight. With
 `components`, a second read of the log adds SegmentMeIfYouCan component metrics for the headline
 configurations at their best pixel-F1 thresholds, and per scenario the figures of the best row under
-each headline mask setting (the first pass follows only the default row per scenario). The first
+each headline mask setting and of the shipped configuration (the first pass follows only the default
+row per scenario). The first
 pass also feeds the report's diagnosis
 (`umad_common.metrics.diagnosis`): where each map's top 1 % of pixels lies by semantic class, and the
 anomaly's frame-relative score against frames since it first became visible.
@@ -15,7 +16,9 @@ Rows and settings: the paper's 15 weight rows in its order, then ours (`WeightRo
 groups; every group with SSIM again with the shift-tolerant SSIM (`ssim_shift`) in its place; then
 every group again on `robust`-normalised maps (`umad_common.differences.robust` of the logged
 min-max maps, equal to robust normalisation of the raw maps); then the lidar difference alone and
-every min-max group with it added at `LIDAR_SHARE`. Rows of the paper's maps at min-max
+every min-max group with it added at `LIDAR_SHARE`; last, the shipped configuration's weights
+(`umad_replay.protocol.shipped_configuration`: what the graph as run fused), where no row above has
+them with its refinement. Rows of the paper's maps at min-max
 are scored per segmenter with the refinements mean, max, single (the paper's), single_keep_raw and
 mean_pixel (ours), plus no mask; the others with `mean` and `mean_pixel` refinement and no mask
 only. A row whose map the log lacks (a graph without `diff_ssim_shift`) is skipped.
@@ -59,7 +62,7 @@ from umad_common.refine import (
     with_pixel_share,
 )
 from umad_replay.frames import FrameRecord, LogStats, frames_from_log
-from umad_replay.protocol import run_protocol
+from umad_replay.protocol import run_protocol, shipped_configuration
 
 PAPER_METRICS = ("abs", "mse", "ssim", "perceptual", "temporal")
 REFINE_MODES = ("mean", "max", "single", "single_keep_raw", "mean_pixel")  # the last two are ours, not the paper's
@@ -86,12 +89,17 @@ class WeightRow:
     weights: dict[str, Fraction]  # metric -> weight, metrics in PAPER_METRICS order
     extra: bool = False  # True: a row of ours, not in the paper's table
     normalization: str = "minmax"  # of the maps it fuses: minmax (as logged, the paper's) or robust (ours)
+    every_mode: bool = False  # True: every refinement scored whatever the maps (the shipped row added last)
 
     @property
     def modes(self) -> tuple[str, ...]:
         """The refinements scored for this row: all of them on the paper's maps, `mean` and `mean_pixel` on ours."""
         paper_maps = self.normalization == "minmax" and set(self.weights) <= set(PAPER_METRICS)
-        return REFINE_MODES if paper_maps else ("mean", "mean_pixel")
+        return REFINE_MODES if paper_maps or self.every_mode else ("mean", "mean_pixel")
+
+    def scores(self, mode: str) -> bool:
+        """Whether this row is scored with refinement `mode` (`none`: no mask)."""
+        return mode == "none" or mode in self.modes
 
 
 def paper_weight_rows() -> list[WeightRow]:
@@ -117,6 +125,43 @@ def weight_rows() -> list[WeightRow]:
     minmax_rows = groups + stand_ins
     robust_rows = [WeightRow(row.weights, extra=True, normalization="robust") for row in minmax_rows]
     return minmax_rows + robust_rows + lidar_rows(minmax_rows)
+
+
+METRIC_ORDER = (*PAPER_METRICS, *STAND_INS.values(), LIDAR)  # how a row lists its metrics
+
+
+def shipped_weights(shipped: dict | None) -> dict[str, Fraction] | None:
+    """The shipped configuration's fusion weights as fractions of their sum, in METRIC_ORDER (others
+    after), or None without a shipped configuration."""
+    if not shipped or not shipped["weights"]:
+        return None
+    total = sum(shipped["weights"].values())
+    order = sorted(
+        shipped["weights"], key=lambda m: (METRIC_ORDER.index(m) if m in METRIC_ORDER else len(METRIC_ORDER), m)
+    )
+    return {m: Fraction(shipped["weights"][m] / total).limit_denominator(1000) for m in order}
+
+
+def shipped_row_index(rows: list[WeightRow], shipped: dict | None) -> int | None:
+    """The first min-max row with the shipped weights that is scored with its refinement, or None."""
+    weights = shipped_weights(shipped)
+    if weights is None:
+        return None
+    return next(
+        (
+            i
+            for i, row in enumerate(rows)
+            if row.normalization == "minmax" and row.weights == weights and row.scores(shipped["mode"])
+        ),
+        None,
+    )
+
+
+def with_shipped_row(rows: list[WeightRow], shipped: dict | None) -> list[WeightRow]:
+    """`rows`, and the shipped weights as one more row (every refinement scored) where none has them."""
+    if shipped_weights(shipped) is None or shipped_row_index(rows, shipped) is not None:
+        return rows
+    return [*rows, WeightRow(shipped_weights(shipped), extra=True, every_mode=True)]
 
 
 def lidar_rows(groups: list[WeightRow]) -> list[WeightRow]:
@@ -356,6 +401,7 @@ class SweepResult:
     protocol: dict = field(default_factory=dict)  # what the run used: data, models, PD network (umad_replay.protocol)
     every: int = 1  # the sweep scored frames with seq % every == 0
     diagnosis: dict = field(default_factory=dict)  # Diagnosis.compute(): error location, score since visible
+    shipped: Config | None = None  # what the graph as run produced (`shipped_configuration`), None without
 
     def row_label(self, row: int) -> str:
         label = weights_label(self.rows[row].weights)
@@ -407,6 +453,12 @@ class SweepResult:
             return "no mask"
         return f"{masks_name(self.segmenters, config.segmenter)} {config.mode}"
 
+    def shipped_name(self) -> str | None:
+        """`shipped: <mask setting>: <weight row>`, how tables name the shipped configuration; None without one."""
+        if self.shipped is None:
+            return None
+        return f"shipped: {self.setting_label(self.shipped)}: {self.row_label(self.shipped.row)}"
+
 
 class Sweep:
     """Feed frames with `add`; every configuration's metrics stream as they come.
@@ -415,11 +467,14 @@ class Sweep:
     only the weight rows it owns (`owns`); share 0 owns the default row and also follows the frames.
     `merge_rows` pools the others' configurations into share 0's."""
 
-    def __init__(self, overlay_frames: int = 6, every: int = 1, share: tuple[int, int] = (0, 1)):
+    def __init__(
+        self, overlay_frames: int = 6, every: int = 1, share: tuple[int, int] = (0, 1), shipped: dict | None = None
+    ):
         index, count = share
         if not 0 <= index < count:
             raise ValueError(f"share {share}: expected (index, count) with 0 <= index < count")
-        self.rows = weight_rows()
+        self.rows = with_shipped_row(weight_rows(), shipped)
+        self.shipped = shipped
         self.every = every
         self.share = share
         self.metrics: dict[Config, PixelMetrics] = {}
@@ -580,7 +635,15 @@ class Sweep:
             truth_shapes=self.truth_shapes,
             every=self.every,
             diagnosis=self.diagnosis.compute(),
+            shipped=self.shipped_config(),
         )
+
+    def shipped_config(self) -> Config | None:
+        """The shipped configuration's cell of the table, or None where the graph had none."""
+        row = shipped_row_index(self.rows, self.shipped)
+        if row is None:
+            return None
+        return Config(row, self.shipped["segmenter"], self.shipped["mode"])
 
 
 def masks_name(segmenters: dict[str, str], op: str) -> str:
@@ -620,8 +683,11 @@ def configuration_map(
 
 
 def component_configs(result: SweepResult) -> dict[str, Config]:
-    """Configurations worth component metrics: the best-AP one and the default row per mask setting."""
+    """Configurations worth component metrics: the shipped one, the best-AP one and the default row per
+    mask setting."""
     chosen: dict[str, Config] = {}
+    if result.shipped in result.metrics:
+        chosen[result.shipped_name()] = result.shipped
     scored = [c for c, m in result.metrics.items() if m.n_anomaly and m.n_normal]
     if scored:
         best = max(scored, key=lambda c: (result.metrics[c].compute()["AP"], -c.row))
@@ -653,11 +719,14 @@ def weights_label(weights: dict[str, Fraction]) -> str:
     return "+".join(names) + f" {share}"
 
 
-def best_configs(result: SweepResult) -> dict[str, Config]:
-    """The best-AP configuration under each of the headline's refined and no-mask settings (GT,
+def scenario_configs(result: SweepResult) -> dict[str, Config]:
+    """The configurations the second pass scores per scenario: the shipped one (`shipped_name`), then
+    the best-AP configuration under each of the headline's refined and no-mask settings (GT,
     unsupervised and SAM masks with `mean`, unsupervised with `mean_pixel`, no mask), as
     `best <setting>: <weight row>`."""
     chosen: dict[str, Config] = {}
+    if result.shipped in result.metrics:
+        chosen[result.shipped_name()] = result.shipped
     for setting in result.headline_settings():
         if setting.column not in ("gt", "unsupervised", "sam", "none", "unsupervised_pixel"):
             continue
@@ -677,13 +746,13 @@ def second_pass(
 ) -> dict[str, dict]:
     """A second read of the log, once the first has ranked every configuration: SegmentMeIfYouCan
     component metrics for `component_configs` and MNAD, each at its best pixel-F1 threshold from the
-    first pass (returned), and per scenario the figures of `best_configs` (added to
+    first pass (returned), and per scenario the figures of `scenario_configs` (added to
     `result.per_scenario`: the first pass follows only the default row there).
 
     With `workers` > 1 the scored frames are dealt out in turn among that many processes, each
     reading the whole log; their components are put back in the order of one read, so the figures
     are one process's."""
-    configs, best = component_configs(result), best_configs(result)
+    configs, best = component_configs(result), scenario_configs(result)
     thresholds = {name: result.metrics[c].best_f1_threshold() for name, c in configs.items()}
     if result.baseline is not None and result.baseline.n_anomaly:
         thresholds["MNAD"] = result.baseline.best_f1_threshold()
@@ -772,10 +841,10 @@ def _second_pass_share(
 
 
 def _sweep_share(
-    path: Path, lag: int, every: int, share: tuple[int, int]
+    path: Path, lag: int, every: int, shipped: dict | None, share: tuple[int, int]
 ) -> tuple[dict[Config, PixelMetrics], dict[Config, int]]:
     """One share's first pass in a worker process: the metrics of its weight rows."""
-    sweep = Sweep(overlay_frames=0, every=every, share=share)
+    sweep = Sweep(overlay_frames=0, every=every, share=share, shipped=shipped)
     stats = LogStats()
     for frame in frames_from_log(path, stats, lag):
         sweep.add(frame, stats.segmenters)
@@ -815,18 +884,22 @@ def sweep_log(
         )
     start = time.perf_counter()
     stats = LogStats()
-    sweep = Sweep(overlay_frames=overlay_frames, every=every, share=(0, workers))
+    metadata = read_metadata(path)
+    shipped = shipped_configuration(metadata)
+    sweep = Sweep(overlay_frames=overlay_frames, every=every, share=(0, workers), shipped=shipped)
     others = []
     with one_blas_thread(), ExitStack() as stack:  # share 0 here, beside the other shares' processes
         if workers > 1:  # the other shares of the weight rows, each in its own process
             pool = share_pool(stack, workers)
-            others = [pool.submit(_sweep_share, path, lag, every, (index, workers)) for index in range(1, workers)]
+            others = [
+                pool.submit(_sweep_share, path, lag, every, shipped, (index, workers)) for index in range(1, workers)
+            ]
         for frame in tqdm(frames_from_log(path, stats, lag), desc="sweep", unit="frame", disable=not progress):
             sweep.add(frame, stats.segmenters)
         for other in others:
             sweep.merge_rows(*other.result())
         result = sweep.result(stats)
-        result.protocol = run_protocol(read_metadata(path), stats.map_notes)
+        result.protocol = run_protocol(metadata, stats.map_notes)
         if incomplete:
             result.protocol["incomplete"] = incomplete
         if components:

@@ -107,3 +107,13 @@ def test_train_bench_refuses_to_compare_one_process_with_itself():
 
     with pytest.raises(ValueError, match="--nproc 1: the bench compares one process with more"):
         bench_train(processes=1)
+
+
+def test_data_bench_reads_the_same_drive_from_a_bag_and_from_anovox_folders(tmp_path):
+    out = tmp_path / "bench.json"
+    assert umad_main(["bench", "data", "--frames", "3", "--out", str(out)]) == 0
+    data = json.loads(out.read_text())["data"]
+    assert data["frames"] == 3 and data["same_rgb"] and data["same_lidar"]
+    for ratio in ("fps_ratio_bag", "fps_ratio_bag_label_free"):
+        assert data[ratio] > 0
+    assert data["fps_ratio_bag"] == pytest.approx(data["fps_bag"] / data["fps_anovox"])

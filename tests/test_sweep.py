@@ -748,3 +748,69 @@ def test_mask_set_is_bit_identical_to_refine(seed):
             assert mask_set.exact_sums(pixel_values["tiny"]) is None
     peaked_values = peaked.astype(np.float64).reshape(-1)[MaskSet(tiling).pixels]
     assert MaskSet(tiling).exact_sums(peaked_values) is not None
+
+
+SHIPPED_GRAPH = """
+name: test
+operators:
+  - {id: replayer, kind: replayer, params: {source: data/anomalous}}
+  - {id: fusion, kind: fusion, inputs: {maps: diff_*/map}, params: {weights: {abs: 0.5, ssim: 0.5, perceptual: 0.0}}}
+  - {id: seg_gt, kind: segmenter, inputs: {frame: world_model/frame, truth: replayer/truth}, params: {method: gt}}
+  - {id: refine_gt, kind: mask_refiner, inputs: {fused: fusion/fused, masks: seg_gt/masks}, params: {mode: mean}}
+  - {id: seg_felz, kind: segmenter, inputs: {frame: world_model/frame}, params: {method: felzenszwalb}}
+  - {id: refine_felz, kind: mask_refiner, inputs: {fused: fusion/fused, masks: seg_felz/masks}, params: {mode: mean}}
+"""
+
+
+def test_the_shipped_configuration_is_scored_and_leads_the_report(tmp_path):
+    path = tmp_path / "run.mcap"
+    truths = write_log(path, synthetic_frames(), {"graph": SHIPPED_GRAPH, "base_dir": str(tmp_path), "version": "t"})
+    result = sweep_log(path, progress=False, overlay_frames=0)
+    # abs + ssim at 1/2 is no row of the table: it is added, every refinement scored; the first
+    # label-free refiner (not the ground truth's) is what the graph shipped
+    assert result.rows[-1].weights == {"abs": Fraction(1, 2), "ssim": Fraction(1, 2)} and result.rows[-1].extra
+    assert result.shipped.row == len(result.rows) - 1
+    assert (result.shipped.segmenter, result.shipped.mode) == ("seg_felz", "mean")
+    expected = direct(truths, lambda t: refined_mean(weighted(t, {"abs": 0.5, "ssim": 0.5}), t["tiles"]))
+    scores = result.metrics[result.shipped].compute()
+    assert (scores["AP"], scores["AUROC"]) == pytest.approx(expected, abs=2e-3)
+    name = "shipped: felzenszwalb mean: abs+ssim (1/2)"
+    assert result.shipped_name() == name and set(result.per_scenario["Scenario_a"]) >= {name}
+
+    out = write_report(result, tmp_path / "report", path).parent
+    summary = json.loads((out / "results.json").read_text())
+    shipped = summary["headline"]["shipped"]
+    assert (shipped["masks"], shipped["weights_label"], shipped["refiner"]) == (
+        "felzenszwalb mean",
+        "abs+ssim (1/2)",
+        "refine_felz",
+    )
+    assert shipped["AP"] == pytest.approx(scores["AP"]) and set(shipped["per_drive_AUROC"]) == {
+        "Scenario_a",
+        "Scenario_b",
+    }
+    weakest = min(shipped["per_drive_AUROC"], key=shipped["per_drive_AUROC"].get)
+    assert shipped["weakest"]["drive"] == weakest
+    assert summary["headline"]["ratios"]["shipped / MNAD (AP)"] == pytest.approx(
+        shipped["AP"] / summary["baseline"]["AP"]
+    )
+    index = (out / "index.md").read_text()
+    assert index.index("as the graph ran (refine_felz)") < index.index("chosen on the test data after the fact")
+    assert f"{name} AP / FPR95 / AUROC" in (out / "per_scenario.md").read_text()
+
+    b = tmp_path / "b"
+    assert umad_main(["compare", str(out), str(out), "--out", str(b)]) == 0
+    assert "shipped masks A / B" in (b / "compare.md").read_text()
+
+
+def test_a_shipped_configuration_that_is_a_row_of_the_table_adds_none():
+    from umad_replay.sweep import shipped_row_index, with_shipped_row
+
+    shipped = {"weights": dict.fromkeys(("abs", "mse", "ssim", "perceptual", "temporal"), 0.2), "mode": "max"}
+    rows = weight_rows()
+    assert (
+        with_shipped_row(rows, shipped) == rows and rows[shipped_row_index(rows, shipped)].weights == rows[14].weights
+    )
+    lidar = {"weights": {**shipped["weights"], "lidar": 0.5}, "mode": "mean_pixel"}  # the default graph's
+    assert weights_label(rows[shipped_row_index(rows, lidar)].weights) == "all (1/5) + lidar 1/3"
+    assert len(with_shipped_row(rows, {**lidar, "mode": "max"})) == len(rows) + 1  # max is not scored on lidar rows

@@ -9,8 +9,10 @@ camera info: `umad_common.datasets.recording_writers.write_rosbag2`; read with `
 read opens the drive and loads every frame. The two are read alternately, `rounds` times each, so a
 machine whose speed drifts moves both sides alike; frames/s is the best round of each side (the read
 the machine disturbed least), and `fps_ratio_bag` the bag's over AnoVox's (>= 1: the bag is not
-slower). Both files are in the page cache, as a drive read a second time is. A last pass checks that
-both sides give the same pixels and points.
+slower). The same is measured label-free (`fps_ratio_bag_label_free`: both drives opened with
+SENSOR_MODALITIES, as training reads them: camera, lidar, ego, route, no label image). Both files are
+in the page cache, as a drive read a second time is. A last pass checks that both sides give the same
+pixels and points.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ SEED = 1
 
 def bench_data(frames: int = 100, rounds: int = 3) -> dict:
     from umad_common.datasets.anovox import AnoVoxScenario
-    from umad_common.datasets.drive import open_drive
+    from umad_common.datasets.drive import SENSOR_MODALITIES, open_drive
     from umad_common.datasets.recording_writers import write_rosbag2
     from umad_common.datasets.synthetic.generator import generate_benchmark
 
@@ -42,6 +44,8 @@ def bench_data(frames: int = 100, rounds: int = 3) -> dict:
         sides: dict[str, Callable[[], Iterable]] = {
             "anovox": lambda: AnoVoxScenario(scenario),
             "bag": lambda: open_drive(bag),
+            "anovox_label_free": lambda: AnoVoxScenario(scenario, keep=SENSOR_MODALITIES),
+            "bag_label_free": lambda: open_drive(bag, keep=SENSOR_MODALITIES),
         }
         seconds: dict[str, list[float]] = {side: [] for side in sides}
         for _ in range(rounds):
@@ -58,6 +62,9 @@ def bench_data(frames: int = 100, rounds: int = 3) -> dict:
         "fps_anovox": fps["anovox"],
         "fps_bag": fps["bag"],
         "fps_ratio_bag": fps["bag"] / fps["anovox"],
+        "fps_anovox_label_free": fps["anovox_label_free"],
+        "fps_bag_label_free": fps["bag_label_free"],
+        "fps_ratio_bag_label_free": fps["bag_label_free"] / fps["anovox_label_free"],
         "fps_each_round": {side: [frames / s for s in times] for side, times in seconds.items()},
         "mib_per_frame": {side: size / frames / 2**20 for side, size in sizes.items()},
         "same_rgb": same_rgb,

@@ -170,6 +170,7 @@ def run(args: argparse.Namespace) -> int:
 
     from umad_common.dataflow.exit_codes import EXIT_INCOMPLETE, EXIT_STOPPED
     from umad_common.dataflow.launcher import Launcher
+    from umad_common.viz.headline import SCORES, percent, weakest_drive_text
     from umad_common.viz.report import write_report
     from umad_replay.sweep import sweep_log
 
@@ -205,12 +206,26 @@ def run(args: argparse.Namespace) -> int:
     with timed(phases, "report"):
         index = write_report(result, out, record, layout=layout)
     print(f"\n{(out / 'table.md').read_text()}")
+    shipped = result_headline(out).get("shipped")
+    if shipped:
+        figures = ", ".join(f"{key} {percent(shipped[key])}" for key, _ in SCORES)
+        print(
+            f"shipped configuration ({shipped['masks']}, {shipped['weights_label']}): {figures}; weakest drive "
+            f"{weakest_drive_text(shipped)}"
+        )
     took = ", ".join(f"{phase} {seconds:.0f} s" for phase, seconds in phases.items())
     print(
         f"UMAD evaluation done in {time.perf_counter() - started:.0f} s ({took}); "
         f"report: {index} (and {out / 'index.html'})"
     )
     return 0
+
+
+def result_headline(out: Path) -> dict:
+    """The headline of the report just written in `out` (its results.json)."""
+    import json
+
+    return json.loads((out / "results.json").read_text())["headline"]
 
 
 @contextmanager

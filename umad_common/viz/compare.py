@@ -1,5 +1,6 @@
-"""Two evaluation runs side by side (`umad compare`): the headline figures and every ablation row
-of run A and run B with the difference B - A, each B value marked where B is better.
+"""Two evaluation runs side by side (`umad compare`): the shipped configuration, the headline figures
+and every ablation row of run A and run B with the difference B - A, each B value marked where B is
+better.
 
 Runs are compared only when they scored the same frames: the same scenarios, the same frame ids
 in each, the same every-k (read from each results.json's `protocol`). Otherwise `FramesDiffer`
@@ -103,6 +104,27 @@ def headline_settings(a: dict[str, Any], b: dict[str, Any]) -> list[tuple[str, d
     ]
 
 
+def shipped_table(a: dict[str, Any], b: dict[str, Any]) -> Table | None:
+    """The shipped configuration of A and B (what each graph as run produced): AP, FPR95, AUROC, the
+    weakest drive's AUROC, and B - A; None where neither run has one."""
+    sa, sb = a["headline"].get("shipped") or {}, b["headline"].get("shipped") or {}
+    if not sa and not sb:
+        return None
+    cells = [
+        Cell(f"{sa.get('masks', '-')} / {sb.get('masks', '-')}"),
+        Cell(f"{sa.get('weights_label', '-')} / {sb.get('weights_label', '-')}"),
+    ]
+    for key, higher in SCORES:
+        cells += _delta_cells(sa.get(key), sb.get(key), higher, percent)
+    weakest_a, weakest_b = sa.get("weakest") or {}, sb.get("weakest") or {}
+    cells += _delta_cells(weakest_a.get("AUROC"), weakest_b.get("AUROC"), True, percent)
+    header = _score_header(["shipped masks A / B", "weights A / B"]) + [
+        f"weakest drive AUROC {r}" for r in ("A", "B", "B - A")
+    ]
+    drives = f"A: {weakest_a.get('drive', 'n/a')}, B: {weakest_b.get('drive', 'n/a')}"
+    return Table(header, [cells], f"What each graph as run produced; values in %. Weakest drive {drives}.")
+
+
 def headline_table(a: dict[str, Any], b: dict[str, Any]) -> Table:
     """Best row per mask setting and MNAD: AP, FPR95, AUROC of A and B and the difference."""
     lines = []
@@ -123,7 +145,8 @@ def headline_table(a: dict[str, Any], b: dict[str, Any]) -> Table:
     return Table(
         _score_header(["mask setting", "best weights A / B"]),
         lines,
-        "Best AP row per mask setting in each run; values in %. Bold: B better than A, italic: B worse.",
+        "Best AP row per mask setting in each run, chosen on the test data; values in %. Bold: B better than A, "
+        "italic: B worse.",
     )
 
 
@@ -201,7 +224,15 @@ def compare_page(a: dict[str, Any], b: dict[str, Any], name_a: str, name_b: str)
         f"({sampling_text(scored_every(protocol))})."
     )
     sections = [
-        Section("Headline", tables=[headline_table(a, b), lowest_fpr_table(a, b), ratio_table(a, b)]),
+        Section(
+            "Headline",
+            tables=[
+                *filter(None, [shipped_table(a, b)]),
+                headline_table(a, b),
+                lowest_fpr_table(a, b),
+                ratio_table(a, b),
+            ],
+        ),
         Section(
             "What differs",
             model_lines(a, b) + [f"A: {protocol_line(a['protocol'])}", f"B: {protocol_line(b['protocol'])}"],

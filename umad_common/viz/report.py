@@ -2,8 +2,9 @@
 overlay grids, the per-scenario, diagnosis (`diagnosis.py`) and component tables, and the page tying them together
 (index.md and index.html, rendered from the same rows by the templates in `templates/`).
 
-The page opens with the headline (`headline.py`): the run's protocol in one line, the best row
-per mask setting next to MNAD and the ratios that decide the method; then the AP pivot (weights x
+The page opens with the headline (`headline.py`): the run's protocol in one line, the shipped
+configuration (what the graph as run produced, with its weakest drive), the best row per mask setting
+(chosen on this data: the ablation) next to MNAD and the ratios; then the AP pivot (weights x
 mask settings), the pictures, and the full tables. Rows and mask settings that are not in the
 paper's table are marked `extra`.
 
@@ -79,6 +80,35 @@ def table_rows(result: SweepResult) -> list[dict[str, Any]]:
             }
         )
     return rows
+
+
+def shipped_figures(result: SweepResult) -> dict[str, Any] | None:
+    """What the graph as run produced (`SweepResult.shipped`): its weights, masks, AP / FPR95 / AUROC,
+    each drive's AUROC (from the second pass), the weakest drive and how many fall below AUROC_FLOOR;
+    None where the graph had no shipped configuration or the log none of its maps."""
+    name = result.shipped_name()
+    if name is None or result.shipped not in result.metrics:
+        return None
+    scores = result.metrics[result.shipped].compute()
+    per_drive = {
+        run: _number(per_run[name].compute()["AUROC"])
+        for run, per_run in sorted(result.per_scenario.items())
+        if name in per_run
+    }
+    scored = {run: auroc for run, auroc in per_drive.items() if auroc is not None}
+    weakest = min(scored, key=scored.get) if scored else None
+    spec = result.protocol.get("shipped", {})
+    return {
+        "name": name,
+        "refiner": spec.get("refiner"),
+        "weights_label": result.row_label(result.shipped.row),
+        "masks": result.setting_label(result.shipped),
+        **{key: _number(scores[key]) for key, _ in SCORES},
+        "per_drive_AUROC": per_drive,
+        "weakest": None if weakest is None else {"drive": weakest, "AUROC": scored[weakest]},
+        "below_floor": sum(auroc < AUROC_FLOOR for auroc in scored.values()),
+        "floor": AUROC_FLOOR,
+    }
 
 
 def baseline_row(result: SweepResult) -> dict[str, Any] | None:
@@ -231,8 +261,9 @@ def component_table(components: dict[str, dict]) -> Table:
 
 
 def scenario_table(result: SweepResult, csv_path: Path) -> Table:
-    """AP / FPR95 / AUROC per scenario for the default weight row under each mask setting, the best
-    row under each headline mask setting (`best <setting>: <row>`, from the sweep's second pass) and
+    """AP / FPR95 / AUROC per scenario for the default weight row under each mask setting, the shipped
+    configuration (`shipped: <setting>: <row>`) and the best row under each headline mask setting
+    (`best <setting>: <row>`), both from the sweep's second pass, and
     MNAD, with the AnoVox categories found under the scenario's anomaly pixels and the drive's weather
     (`?` where the data's scenario config does not name it); also written as CSV. A last line names
     each setting's weakest scenario (and its weather) by AUROC and how many fall below AUROC_FLOOR."""
@@ -342,7 +373,8 @@ def write_report(
     rows, baseline = table_rows(result), baseline_row(result)
     paper_settings = result.paper_settings()
     paper_labels = [s.label for s in paper_settings]
-    headline = headline_figures(rows, baseline, [(s.label, s.column) for s in result.headline_settings()])
+    settings = [(s.label, s.column) for s in result.headline_settings()]
+    headline = headline_figures(rows, baseline, settings, shipped_figures(result))
     protocol = run_protocol(result, layout)
     stats = result.stats
     summary = {
@@ -400,8 +432,9 @@ def write_report(
         Section(
             "Per scenario",
             [
-                f"Default weights ({summary['default_weights']}) under each mask setting, then the best "
-                "row under each headline mask setting (`best …`); the last line names each setting's weakest "
+                f"Default weights ({summary['default_weights']}) under each mask setting, then the shipped "
+                "configuration (`shipped: …`, what the graph as run produced), then the best row under each "
+                "headline mask setting (`best …`, chosen on this data); the last line names each one's weakest "
                 f"scenario by AUROC and counts those below {100 * AUROC_FLOOR:.0f} %. Each drive's weather is the "
                 "one the data's scenario config names (`?` where it names none). Files: per_scenario.md, "
                 "per_scenario.csv."
