@@ -604,7 +604,7 @@ def test_test_world_model_command_names_data_it_cannot_score(tmp_path):
     save_world_model(tiny_model(), tmp_path / "wm", {"training_drives": ["Scenario_n0"]})
     args = argparse.Namespace(
         model=tmp_path / "wm.safetensors", data=tmp_path / "data", horizon=3, normal_limit=None,
-        anomalous_limit=None, threads=1,
+        anomalous_limit=None, threads=1, topics=None,
     )  # fmt: skip
     with pytest.raises(SystemExit, match="no normal drive the model did not train on"):
         test_world_model.run(args)
