@@ -395,3 +395,17 @@ def test_ego_state_of_a_frame_without_odometry_is_zero(anomalous, tmp_path):
     drive = open_drive(write_rosbag2(open_drive(anomalous), tmp_path / "bare", odometry=False, control=None))
     assert drive[0].ego == EgoState() and "action" not in drive.modalities
     assert any("no odometry or control" in note for note in drive.notes())
+
+
+def test_a_reader_of_the_camera_alone_is_not_stopped_by_two_lidars(tmp_path):
+    messages = [
+        ("/cam", "sensor_msgs/msg/Image", ros_image()),
+        ("/front/points", "sensor_msgs/msg/PointCloud2", ros_cloud(False)),
+        ("/rear/points", "sensor_msgs/msg/PointCloud2", ros_cloud(False)),
+    ]
+    bag = write_custom_bag(tmp_path / "two_lidars", messages)
+    with pytest.raises(DatasetError, match="2 topics could be the lidar"):
+        open_drive(bag)
+    drive = open_drive(bag, keep=("rgb",))  # what MNAD and the feature net train on
+    assert drive.modalities == {"rgb"} and drive[0].lidar is None
+    assert open_drive(bag, topics="lidar=/rear/points")[0].lidar.shape == (2, 4)

@@ -295,7 +295,6 @@ class RecordingDrive(Drive):
         self.every = every
         self.store = open_store(self.path)
         where = str(self.path)
-        roles = choose_topics(self.store.topics, parse_topics(topics), where)
         kept = {"camera"} | {
             role
             for role, modality in (("lidar", "lidar"), ("labels", "anomaly"), ("odometry", "action"))
@@ -303,6 +302,7 @@ class RecordingDrive(Drive):
         }
         kept |= {"control"} if "odometry" in kept else set()
         kept |= {"camera_info", "tf"} if "lidar" in kept else set()
+        roles = choose_topics(self.store.topics, parse_topics(topics), where, kept)
         self.roles: dict[str, list[Choice]] = {role: c for role, c in roles.items() if role in kept}
         for role, choices in self.roles.items():
             for choice in choices:

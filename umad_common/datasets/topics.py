@@ -81,7 +81,9 @@ def listing(topics: dict[str, str], names) -> str:
     return "; ".join(f"{name} ({topics[name]})" for name in names)
 
 
-def choose_topics(topics: dict[str, str], named: dict[str, str], where: str) -> dict[str, list[Choice]]:
+def choose_topics(
+    topics: dict[str, str], named: dict[str, str], where: str, wanted: set[str] | None = None
+) -> dict[str, list[Choice]]:
     """Each role's topics (one, or several for `tf`; absent: the recording has none) in a recording
     whose topics have these types.
 
@@ -89,11 +91,14 @@ def choose_topics(topics: dict[str, str], named: dict[str, str], where: str) -> 
         topics: topic -> canonical type (`umad_common.datasets.recording_messages.canonical_type`).
         named: role -> topic, from `--topics`.
         where: the recording, for messages.
+        wanted: the roles to choose (the camera always); None: all. A role not wanted is not chosen
+            by type, so its candidates cannot be ambiguous (a reader of the camera alone).
 
     Raises:
         DatasetError: a named topic the recording lacks or whose type the role cannot take; no camera;
             two candidates for a role in EXCLUSIVE_ROLES.
     """
+    wanted = set(ROLE_TYPES) if wanted is None else {"camera", *wanted}
     chosen: dict[str, list[Choice]] = {}
     for role, topic in named.items():
         if topic not in topics:
@@ -110,10 +115,10 @@ def choose_topics(topics: dict[str, str], named: dict[str, str], where: str) -> 
     free = {topic: kind for topic, kind in topics.items() if topic not in taken}
     images = [t for t, kind in free.items() if kind in IMAGE_TYPES]
     hinted = [t for t in images if any(hint in t.lower() for hint in LABEL_NAME_HINTS)]
-    if "labels" not in chosen and len(hinted) == 1:
+    if "labels" not in chosen and "labels" in wanted and len(hinted) == 1:
         chosen["labels"] = [Choice(hinted[0], free[hinted[0]], "its name says labels")]
     for role in ("camera", "lidar", "odometry", "control"):
-        if role in chosen:
+        if role in chosen or role not in wanted:
             continue
         candidates = [t for t, kind in free.items() if kind in ROLE_TYPES[role]]
         if role == "camera":
@@ -131,14 +136,14 @@ def choose_topics(topics: dict[str, str], named: dict[str, str], where: str) -> 
             f"{where}: no camera topic (types {kinds}) among {listing(topics, sorted(topics)) or 'no topics'}; "
             f"expected one, or name it with --topics camera=TOPIC"
         )
-    if "camera_info" not in chosen:
+    if "camera_info" not in chosen and "camera_info" in wanted:
         infos = [t for t, kind in free.items() if kind in CAMERA_INFO_TYPES]
         if infos:
             camera = chosen["camera"][0].topic
             best = max(infos, key=lambda t: (common_prefix(t, camera), -len(t)))
             why = "the only camera info type" if len(infos) == 1 else "the camera info nearest the camera's topic"
             chosen["camera_info"] = [Choice(best, free[best], why)]
-    if "tf" not in chosen:
+    if "tf" not in chosen and "tf" in wanted:
         static = [
             t
             for t, kind in free.items()
