@@ -189,17 +189,21 @@ class WorldModelPredictor(Operator):
 
     def lidar_arrays(self, frame: Frame, posterior: State) -> dict[str, np.ndarray]:
         """The returns in the camera's view: `lidar_pixel` (N, 2) int32 (row, column) in the target
-        image, `lidar_range` (N,) float32 metres and `lidar_expected` (N,) float32, the range the
-        reconstructed lidar view holds at each return's view pixel."""
+        image, `lidar_range` (N,) float32 metres, `lidar_expected` (N,) float32, the range the
+        reconstructed lidar view holds at each return's view pixel, and `lidar_expected_height` (N,)
+        float32, how far above the vehicle's origin (the ground, in CARLA's and AnoVox's rigs) the
+        point the model expected along that beam lies."""
         c, wm = self.config, self.wm
         points = input_array(frame, "lidar", "points", self.kind)
-        returns = wm.lidar_returns(points, c, self.rig_of(frame))
-        expected = self.model.decode_lidar(posterior)[0].cpu().numpy()
+        rig = self.rig_of(frame)
+        returns = wm.lidar_returns(points, c, rig)
+        expected = np.ascontiguousarray(self.model.decode_lidar(posterior)[0].cpu().numpy()[returns.row, returns.col])
         scale = c.lidar_view_scale
         return {
             "lidar_pixel": np.stack([returns.row // scale, returns.col // scale], axis=1).astype(np.int32),
             "lidar_range": returns.range,
-            "lidar_expected": np.ascontiguousarray(expected[returns.row, returns.col], np.float32),
+            "lidar_expected": expected.astype(np.float32),
+            "lidar_expected_height": (rig.lidar_location[2] + expected * returns.rise).astype(np.float32),
         }
 
     def missed_steps(self, run: RunState, seq: int) -> int:

@@ -516,6 +516,15 @@ def test_lidar_difference_is_the_share_of_the_expected_range_that_something_bloc
     assert lidar_map[8, 5] == 0.0 and lidar_map[12, 12] == 0.0  # beyond 2 px of any return
     with pytest.raises(DifferenceInputError, match="no lidar returns"):
         LidarDifference()(target, recon, preds, valid)
+    # with the expected points' heights: only a beam the model expected to reach the ground counts
+    on_ground = pairs._replace(expected_height=np.array([0.1, 2.5, 0.0, 0.2], np.float32))
+    ground_map = LidarDifference()(target, recon, preds, valid, lidar=on_ground)
+    assert ground_map[5, 5] == pytest.approx(0.5)  # 1 - 10/20, expected on the road
+    assert ground_map[0, 29] == pytest.approx(0.75)
+    facade = on_ground._replace(expected_height=np.array([2.5, 2.5, 0.0, 3.0], np.float32))
+    assert not LidarDifference()(target, recon, preds, valid, lidar=facade).any()  # a pole, a facade: nothing
+    with pytest.raises(DifferenceInputError, match="lidar_expected_height: expected float32 array of shape"):
+        LidarDifference()(target, recon, preds, valid, lidar=pairs._replace(expected_height=np.zeros(3, np.float32)))
     outside = pairs._replace(pixel=np.array([[5, 5], [5, 5], [15, 20], [0, 30]], np.int32))
     with pytest.raises(DifferenceInputError, match="outside the 20 x 30 image"):
         LidarDifference()(target, recon, preds, valid, lidar=outside)

@@ -658,6 +658,11 @@ def test_lidar_returns_land_where_the_camera_sees_them_nearest_first():
     returns = lidar_returns(points, config, rig)
     assert returns.row.tolist() == [19, 32] and returns.col.tolist() == [32, 64]
     assert returns.range.tolist() == pytest.approx([np.sqrt(128.01), 5.0])
+    assert returns.rise.tolist() == pytest.approx([2.0 / np.sqrt(128.01), 0.0])  # the beams' climb per metre
+    turned = SensorRig(64, 32, 90.0, (0.0, 0.0, 1.8), (0.0, 0.0, 1.8), lidar_axes=((1, 0, 0), (0, 0, -1), (0, 1, 0)))
+    assert lidar_returns(np.array([[10.0, 2.0, 0.0, 1.0]], np.float32), config, turned).rise[0] == pytest.approx(
+        2.0 / np.sqrt(104.0)
+    )  # a lidar rolled 90 degrees: its y axis is the vehicle's up
     view = lidar_view(returns, config)
     assert view[32, 64] == 5.0 and np.count_nonzero(view) == 2
     assert len(lidar_returns(None, config, rig).range) == 0

@@ -224,6 +224,7 @@ class LidarReturns(NamedTuple):
     row: np.ndarray  # (N,) int64 row in the lidar view (`WorldModelConfig.lidar_view_shape`)
     col: np.ndarray  # (N,) int64 column
     range: np.ndarray  # (N,) float32 metres from the lidar
+    rise: np.ndarray  # (N,) float32 the beam's climb per metre (the z of its unit direction, the vehicle's axes)
 
 
 def lidar_returns(points: np.ndarray | None, config: WorldModelConfig, rig: SensorRig) -> LidarReturns:
@@ -232,7 +233,7 @@ def lidar_returns(points: np.ndarray | None, config: WorldModelConfig, rig: Sens
     rows, cols = config.lidar_view_shape
     if points is None or len(points) == 0:
         empty = np.zeros(0, np.int64)
-        return LidarReturns(empty, empty, np.zeros(0, np.float32))
+        return LidarReturns(empty, empty, np.zeros(0, np.float32), np.zeros(0, np.float32))
     points = np.asarray(points, np.float32)
     if points.ndim != 2 or points.shape[1] < 3:
         raise ValueError(f"lidar points have shape {points.shape}; expected (N, 4)")
@@ -240,12 +241,14 @@ def lidar_returns(points: np.ndarray | None, config: WorldModelConfig, rig: Sens
     rng = np.linalg.norm(points[:, :3], axis=1)
     keep = (depth > 0.1) & (row >= 0) & (row < rows) & (col >= 0) & (col < cols) & np.isfinite(rng)
     row, col, rng = row[keep], col[keep], rng[keep]
+    up = points[keep, :3] @ np.asarray(rig.lidar_axes, np.float32)[2] if rig.lidar_axes else points[keep, 2]
+    rise = up / np.maximum(rng, 1e-6)
     pixel = row * cols + col
     order = np.lexsort((rng, pixel))  # by pixel, nearest first
     first = np.ones(len(order), bool)
     first[1:] = pixel[order][1:] != pixel[order][:-1]
     chosen = order[first]
-    return LidarReturns(row[chosen], col[chosen], rng[chosen].astype(np.float32))
+    return LidarReturns(row[chosen], col[chosen], rng[chosen].astype(np.float32), rise[chosen].astype(np.float32))
 
 
 def lidar_view(returns: LidarReturns, config: WorldModelConfig) -> np.ndarray:
