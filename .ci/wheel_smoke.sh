@@ -42,7 +42,7 @@ echo "generated one drive and evaluated it in ${SECONDS}s: $(tail -n 1 eval.log)
 
 status=0
 "$umad" eval --data "$work/no-such-folder" --out refused 2> refused.log || status=$?
-if [[ "$status" != 2 || -e refused ]] || ! grep -q "no-such-folder: no such folder; expected" refused.log; then
+if [[ "$status" != 2 || -e refused ]] || ! grep -q "no-such-folder: no such folder or file; expected drives" refused.log; then
     echo "bad input: expected exit 2, one line and nothing written; got exit $status:" >&2
     cat refused.log >&2
     exit 1
