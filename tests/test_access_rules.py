@@ -5,12 +5,15 @@ real hub: tests/test_access_control.py."""
 from __future__ import annotations
 
 import io
+import json
 import logging
+from pathlib import Path
 
 from tests.test_graph import SCALE, SINK, SOURCE, TLS, graph
 from umad_common.dataflow.access import access_control, role_rules
 from umad_common.dataflow.graph import validate_graph
 from umad_common.dataflow.hub import RefusalLog
+from umad_common.dataflow.launcher import Launcher
 
 ROLES = {"hub": "launcher", "ops": "control", "rec": "observer", "op-scale": "operator:scale", "op-src": "operator:src"}
 SECURE = graph(SOURCE, SCALE, SINK, hub="tls/127.0.0.1:7447", tls=TLS, security={"roles": ROLES})
@@ -20,29 +23,62 @@ def allowed(rules: list[dict], message: str, flow: str) -> set[str]:
     return {key for r in rules if message in r["messages"] and flow in r["flows"] for key in r["key_exprs"]}
 
 
-def test_an_operator_publishes_only_its_own_keys_and_reads_its_inputs():
+def test_an_operator_publishes_only_its_own_keys_under_its_own_name_and_reads_its_inputs():
     rules = role_rules(validate_graph(SECURE), "operator:scale")
     assert allowed(rules, "put", "ingress") == {
         "umad/t/scale/y",
         "umad/t/_stats/scale/*",
-        "umad/t/_ack",
-        "umad/t/_left",
+        "umad/t/_ack/scale/*",
+        "umad/t/_left/scale/*",
     }
-    assert allowed(rules, "declare_subscriber", "ingress") == {
-        "umad/t/src/value",
-        "umad/t/_ctl/scale",
-        "umad/t/_ack",
-        "umad/t/_left",
-    }
+    assert allowed(rules, "declare_subscriber", "ingress") == {"umad/t/src/value", "umad/t/_left/*/*"}
     assert allowed(rules, "declare_queryable", "ingress") == {"umad/t/_ctl/scale", "umad/t/_payload/scale/*"}
     assert allowed(rules, "query", "ingress") == {"umad/t/_payload/src/*"}  # its input's payloads, nothing else
     assert allowed(rules, "liveliness_token", "ingress") == {"umad/t/_live/scale/*"}
 
 
+ORDERED = graph(
+    {"id": "src", "uses": "tests.toy_ops:RewindableCounterSource"},
+    {"id": "other", "uses": "tests.toy_ops:CounterSource"},
+    {"id": "scale", "uses": "tests.toy_ops:Scale", "inputs": {"x": "src/value"}},
+    {"id": "total", "uses": "tests.toy_ops:RunningSum", "inputs": {"x": "scale/y"}},
+    {"id": "log", "uses": "tests.toy_ops:Logger", "inputs": {"x": "total/y"}},
+    {"id": "log_other", "uses": "tests.toy_ops:Logger", "inputs": {"x": "other/value"}},
+    hub="tls/127.0.0.1:7447",
+    tls=TLS,
+    security={"roles": {"hub": "launcher", **{f"op-{op}": f"operator:{op}" for op in ("src", "total", "scale")}}},
+)
+
+
+def test_an_ordered_operator_asks_only_its_upstream_sources_to_resend_and_no_operator_reaches_ctl():
+    g = validate_graph(ORDERED)
+    assert g.upstream_sources("total") == ["src"]  # through scale; `other` feeds another branch
+    total, source = role_rules(g, "operator:total"), role_rules(g, "operator:src")
+    assert allowed(total, "put", "ingress") == {
+        "umad/t/total/y",
+        "umad/t/_stats/total/*",
+        "umad/t/_ack/total/*",
+        "umad/t/_left/total/*",
+        "umad/t/_resend/src",
+    }
+    assert allowed(source, "declare_subscriber", "ingress") == {
+        "umad/t/_left/*/*",
+        "umad/t/_ack/*/*",
+        "umad/t/_resend/src",
+    }
+    assert allowed(source, "put", "egress") == {"umad/t/_left/*/*", "umad/t/_ack/*/*", "umad/t/_resend/src"}
+    for op in ("src", "total", "scale"):
+        rules = role_rules(g, f"operator:{op}")
+        for message in ("put", "query"):
+            assert not any("/_ctl/" in key for key in allowed(rules, message, "ingress")), (op, message)
+        assert allowed(rules, "query", "egress") >= {f"umad/t/_ctl/{op}"}  # it is asked, by control and the launcher
+
+
 def test_control_only_asks_and_an_observer_only_reads():
     g = validate_graph(SECURE)
     control, observer = role_rules(g, "control"), role_rules(g, "observer")
-    assert allowed(control, "query", "ingress") == {"umad/t/_ctl/**", "umad/*/_graph"}
+    assert allowed(control, "query", "ingress") == {"umad/t/_ctl/**", "umad/t/_graph"}  # its own graph only
+    assert allowed(observer, "query", "ingress") == {"umad/t/_graph", "umad/t/_payload/**"}
     for rules in (control, observer):
         for message in ("put", "reply", "declare_queryable", "liveliness_token"):
             assert allowed(rules, message, "ingress") == set(), message
@@ -57,6 +93,18 @@ def test_the_hubs_access_control_denies_by_default_with_one_subject_per_role():
     assert len(ids) == len(set(ids))
     for policy in acl["policies"]:
         assert all(rule.startswith(f"{policy['id']}/") for rule in policy["rules"])
+
+
+def test_the_hub_gets_its_access_control_in_a_file_only_its_user_reads_never_on_its_command_line(tmp_path):
+    g = validate_graph(SECURE, tmp_path / "g.yaml")
+    launcher = Launcher(g, tmp_path / "g.yaml")
+    command = launcher._hub_command()
+    acl = Path(command[command.index("--access-control") + 1])
+    assert not any("cert_common_names" in word or "key_exprs" in word for word in command)
+    assert acl.stat().st_mode & 0o777 == 0o600
+    assert json.loads(acl.read_text()) == access_control(g)
+    launcher._stop_hub(grace_s=0)  # the hub stops for good: its rules go with it
+    assert not acl.exists()
 
 
 ZID = "82b59c511b549923a51213ed00db96a7"

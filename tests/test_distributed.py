@@ -63,12 +63,16 @@ def test_worker_in_another_namespace_joins_over_tcp_and_takes_frames(tmp_path, n
 
 
 def secure_graph(tmp_path: Path, host_ip: str, port: int, frames: int, delay: float) -> Path:
-    """The toy graph over mutual TLS with access control, certificates made by `umad certs` as the
-    README says: its printed `tls:` and `security:` blocks appended to the graph file."""
-    graph = toy_graph(tmp_path, f"tls/{host_ip}:{port}", frames=frames, delay=delay, replicas=1)
-    made = run_umad("certs", str(graph), "--out", str(tmp_path / "certs"))
+    """The toy graph over mutual TLS with access control (`secured`)."""
+    return secured(toy_graph(tmp_path, f"tls/{host_ip}:{port}", frames=frames, delay=delay, replicas=1))
+
+
+def secured(graph: Path) -> Path:
+    """`graph` with certificates made by `umad certs` as the README says (bundles in `certs/` beside
+    it, the CA in `certs-ca/`): its printed `tls:` and `security:` blocks appended to the graph file."""
+    made = run_umad("certs", str(graph), "--out", str(graph.parent / "certs"))
     assert made.returncode == 0, made.stderr
-    blocks = yaml.safe_load(made.stdout.split("\n", 1)[1])
+    blocks = yaml.safe_load(made.stdout.partition("\n# for the graph file")[2].partition("\n")[2])
     graph.write_text(yaml.safe_dump({**yaml.safe_load(graph.read_text()), **blocks}, sort_keys=False))
     return graph
 

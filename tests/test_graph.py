@@ -113,7 +113,7 @@ def test_missing_file_and_bad_yaml(tmp_path):
 
 def test_check_names_missing_interpreters_and_tls_files_but_workers_load_the_graph(tmp_path):
     tls = {"root_ca": "ca.pem", "cert": "hub.pem", "key": "hub.key", "certs": "certs"}
-    data = graph(SOURCE, {**SCALE, "python": "nowhere/bin/python"}, SINK, tls=tls)
+    data = graph(SOURCE, {**SCALE, "python": "nowhere/bin/python"}, SINK, hub="tls/127.0.0.1:7447", tls=tls)
     path = tmp_path / "g.yaml"
     path.write_text(yaml.safe_dump(data))
     load_graph(path)  # a worker elsewhere needs neither the other environment nor this machine's files
@@ -121,7 +121,8 @@ def test_check_names_missing_interpreters_and_tls_files_but_workers_load_the_gra
     assert result.returncode == 2
     assert f"python interpreter {tmp_path / 'nowhere/bin/python'} not found" in result.stderr
     assert f"tls.root_ca: {tmp_path / 'ca.pem'} not found" in result.stderr
-    assert f"operator 'scale': certificate {tmp_path / 'certs/op-scale.pem'} not found (tls.certs)" in result.stderr
+    own = tmp_path / "certs/op-scale/op-scale.pem"
+    assert f"operator 'scale': certificate {own} not found (its bundle in tls.certs)" in result.stderr
 
 
 TLS = {"root_ca": "ca.pem", "cert": "hub.pem", "key": "hub.key"}
@@ -142,8 +143,42 @@ def test_security_roles_name_known_roles_and_operators_and_the_launcher():
     )
     assert "security.roles.op-x: 'operator:nope' names no operator of the graph" in found
     assert "security.roles: no common name has the role launcher" in found
-    tcp = graph(SOURCE, SCALE, SINK, tls=TLS, security={"roles": {"hub": "launcher"}})
-    assert "is not a tls/HOST:PORT endpoint, so no certificate is checked" in problems(tcp)
+
+
+def test_tls_with_a_tcp_hub_is_refused_naming_the_fix_with_or_without_security(tmp_path):
+    for security in (None, {"roles": {"hub": "launcher"}}):
+        tcp = graph(SOURCE, SCALE, SINK, hub="tcp/10.0.0.5:7447", tls=TLS, security=security)
+        assert (
+            "tls: the hub 'tcp/10.0.0.5:7447' is not a tls/HOST:PORT endpoint, so no certificate is checked "
+            "and every message travels in clear; write `hub: tls/10.0.0.5:7447`" in problems(tcp)
+        )
+    path = tmp_path / "g.yaml"
+    path.write_text(yaml.safe_dump(graph(SOURCE, SCALE, SINK, tls=TLS)))
+    for command in (["graph", "check"], ["launch"]):
+        result = run_umad(*command, str(path))
+        assert result.returncode == 2 and "write `hub: tls/127.0.0.1:7447`" in result.stderr, result.stderr
+
+
+def test_tls_without_security_passes_the_check_with_one_warning_and_launch_refuses_a_tcp_hub(tmp_path):
+    (tmp_path / "certs").mkdir()
+    for name in ("ca.pem", "hub.pem", "hub.key"):
+        (tmp_path / name).write_text("")
+    path = tmp_path / "g.yaml"
+    path.write_text(yaml.safe_dump(graph(SOURCE, SCALE, SINK, hub="tls/127.0.0.1:7447", tls=TLS)))
+    checked = run_umad("graph", "check", str(path))
+    assert checked.returncode == 0, checked.stderr
+    warnings = [line for line in checked.stderr.splitlines() if line.startswith("warning:")]
+    assert warnings == [
+        f"warning: {path}: tls: without security:, so any holder of a certificate of the graph's CA may do anything "
+        "in the graph (set parameters, stop it, publish as any operator, forge acks); add the security: block that "
+        "`umad certs` prints"
+    ]
+    refused = run_umad("launch", str(path), "--hub", "tcp/127.0.0.1:7447")
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
+    assert (
+        "--hub tcp/127.0.0.1:7447: not a tls/ endpoint" in refused.stderr
+        and "expected tls/127.0.0.1:7447" in refused.stderr
+    )
 
 
 REPLAYER = {"id": "replayer", "kind": "replayer", "params": {"source": "."}}

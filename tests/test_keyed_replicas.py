@@ -18,16 +18,17 @@ from collections import defaultdict
 from pathlib import Path
 from types import SimpleNamespace
 
-import msgpack
 import pytest
 import yaml
 
 from tests.conftest import free_port, run_umad, start_umad
 from umad_common import DEFAULT_GRAPH
+from umad_common.dataflow.bus import Keys
 from umad_common.dataflow.delivery import Membership, Stats
 from umad_common.dataflow.delivery_ordered import RunOwners, rendezvous_score
 from umad_common.dataflow.graph import validate_graph
 from umad_common.dataflow.messages import Message, decode, encode
+from umad_common.dataflow.service_messages import IgnoredMessages, encode_ack
 from umad_common.dataflow.source_driver import SourceDriver
 
 RUNS = [f"run{r}" for r in range(4)]
@@ -123,6 +124,7 @@ class AckingHost:
         for op in graph.spec.operators:
             self.members.put(op.id, "r0")
         self.resend_requests: list[dict] = []
+        self.ignored = IgnoredMessages(self.log, self.stats)
         self.published: list[tuple[str, int, bool]] = []  # (run, seq, end-of-run marker)
         self.on_ack = None
 
@@ -150,8 +152,10 @@ class AckingHost:
     def publish(self, payloads, count=True):
         msg = decode(payloads[0][1])
         self.published.append((msg.run, msg.seq, bool(msg.meta.get("eos"))))
-        ack = msgpack.packb({"run": msg.run, "seq": msg.seq, "op": "log"})
-        self.on_ack(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: ack)))
+        ack = encode_ack(msg.run, msg.seq, "log")
+        self.on_ack(
+            SimpleNamespace(key_expr=Keys("sbs").ack("log", "r0"), payload=SimpleNamespace(to_bytes=lambda: ack))
+        )
 
 
 def test_a_source_sends_runs_side_by_side_and_ends_each_once_its_frames_are_acked():

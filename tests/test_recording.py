@@ -134,7 +134,9 @@ def test_a_payload_the_recorder_cannot_read_is_counted_and_the_log_says_so(tmp_p
     publisher, launcher = open_client(hub_endpoint), open_client(hub_endpoint)
     try:
         acks: list[dict] = []
-        ack_sub = publisher.declare_subscriber(keys.ack, lambda s: acks.append(msgpack.unpackb(s.payload.to_bytes())))
+        ack_sub = publisher.declare_subscriber(
+            keys.ack_all, lambda s: acks.append(msgpack.unpackb(s.payload.to_bytes()))
+        )
         recording = Recording(launcher, graph, tmp_path / "run.mcap", {"graph": "name: toy", "base_dir": "."})
         ring = PayloadRing(
             keys.payload("source"), tmp_path / "elsewhere"

@@ -189,8 +189,10 @@ def test_bad_control_commands_are_rejected_and_the_operator_goes_on(tmp_path, hu
     try:
         stats, sub = watch_stats(session, "triple")
         bad = (b"not json", b"[1]", b'{"set": 5}', b'{"set": {"factor": "big"}}', b'{"set": {"nope": 1}}')
-        for payload in bad:
-            session.put("umad/toy/_ctl/triple", payload)
+        for payload in bad:  # straight to the replica's command key, each answered
+            replies = session.get("umad/toy/_ctl/triple", payload=payload, timeout=30)
+            answers = [json.loads(reply.ok.payload.to_bytes()) for reply in replies if reply.ok is not None]
+            assert [answer["status"] for answer in answers] == ["refused"], (payload, answers)
         # Commands find the graph on the hub (no --graph) and hear back what each replica did.
         refused = run_umad("set", "triple.factor=big", "--connect", hub_endpoint)
         assert refused.returncode == 1, refused.stdout + refused.stderr

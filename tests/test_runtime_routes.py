@@ -91,6 +91,9 @@ def test_membership_change_recomputes_the_expected_producers(runtime):
     assert runtime._routes()[0] == {"b": {"double", "triple"}}
     goodbye = msgpack.packb({"op": "triple", "replica": "r0"})
     runtime.members.delete("triple", "r0")  # its liveliness token went, after its goodbye below
-    runtime.ctl_q.put(("left", SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: goodbye))))
+    sample = SimpleNamespace(
+        key_expr=runtime.keys.left("triple", "r0"), payload=SimpleNamespace(to_bytes=lambda: goodbye)
+    )
+    runtime.ctl_q.put(("left", sample))
     assert runtime.handle_service()
     assert runtime._routes()[0] == {"b": {"double"}}

@@ -47,7 +47,7 @@ from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.dataflow import Frame, Input, Operator, Output, Source, SourceFrame, SourceParams
 from umad_common.dataflow.allocator import keep_freed_memory
 from umad_common.dataflow.bus import open_client, open_hub
-from umad_common.dataflow.certificates import HUB, make_certificates, operator_identity
+from umad_common.dataflow.certificates import HUB, bundle_paths, make_certificates, operator_identity
 from umad_common.dataflow.launcher import OPERATOR_NICENESS
 from umad_common.dataflow.messages import Message, decode, encode
 
@@ -305,9 +305,11 @@ def _wait_for_subscriber(publisher) -> None:
 def secured(folder: Path, access_control: bool) -> dict:
     """The bench graph's `tls:` block, certificates made in `folder`, and with `access_control` its
     `security:` block giving each operator its own role."""
-    make_certificates(folder, "bench", list(CHAIN), ["localhost", "127.0.0.1"])
-    tls = {"root_ca": "ca.pem", "cert": f"{HUB}.pem", "key": f"{HUB}.key", "certs": "."}
-    blocks: dict = {"tls": {name: str(folder / path) for name, path in tls.items()}}
+    make_certificates(folder / "certs", folder / "ca", "bench", list(CHAIN), ["localhost", "127.0.0.1"])
+    root_ca, cert, key = bundle_paths(folder / "certs", HUB)
+    blocks: dict = {
+        "tls": {"root_ca": str(root_ca), "cert": str(cert), "key": str(key), "certs": str(folder / "certs")}
+    }
     if access_control:
         roles = {HUB: "launcher"} | {operator_identity(op): f"operator:{op}" for op in CHAIN}
         blocks["security"] = {"roles": roles}

@@ -314,3 +314,27 @@ def print_notice(line: str | None) -> None:
     """A line about an input that works, but not as fully as it could (e.g. drives without lidar)."""
     if line:
         print(f"note: {line}", file=sys.stderr, flush=True)
+
+
+def tls_hub(endpoint: str, name: str, graph: Graph) -> str:
+    """`endpoint` when it fits the graph: a graph with `tls:` listens on a tls/HOST:PORT hub only."""
+    if graph.spec.tls is not None and not endpoint.startswith("tls/"):
+        raise InputError.of(
+            f"{name} {endpoint}",
+            "not a tls/ endpoint, so the graph's tls: would check no certificate and its messages travel in clear",
+            f"tls/{endpoint.partition('/')[2]}",
+        )
+    return endpoint
+
+
+def print_open_access_warning(graph: Graph, path: str | Path) -> None:
+    """Warn, once per command, about a graph with `tls:` but no `security:`: mutual TLS lets only the
+    graph's certificates in, and then every holder of one may do anything in the graph."""
+    if graph.spec.tls is not None and graph.spec.security is None:
+        print(
+            f"warning: {path}: tls: without security:, so any holder of a certificate of the graph's CA may do "
+            "anything in the graph (set parameters, stop it, publish as any operator, forge acks); add the "
+            "security: block that `umad certs` prints",
+            file=sys.stderr,
+            flush=True,
+        )

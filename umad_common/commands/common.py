@@ -81,7 +81,8 @@ def connect_to_running_graph(args: argparse.Namespace) -> RunningGraph | None:
     if session is None:
         print(f"no hub at {hub}: is the graph running (`umad launch`)?", file=sys.stderr)
         return None
-    graphs = {info["name"]: info for info in ask(session, Keys.ALL_GRAPHS, {}, CONNECT_TIMEOUT_S)}
+    asked = Keys(name).graph_info if name else Keys.ALL_GRAPHS  # a certificate may ask its own graph only
+    graphs = {info["name"]: info for info in ask(session, asked, {}, CONNECT_TIMEOUT_S)}
     chosen = graphs.get(name) if name else (next(iter(graphs.values())) if len(graphs) == 1 else None)
     if chosen is None:
         session.close()

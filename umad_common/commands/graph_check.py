@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from umad_common.commands.checks import checked_graph
+from umad_common.commands.checks import checked_graph, print_open_access_warning
 from umad_common.commands.common import add_graph_argument
 
 
@@ -12,6 +12,7 @@ def add_arguments(parser):
 
 def run(args) -> int:
     graph = checked_graph(args.graph, local=True)
+    print_open_access_warning(graph, args.graph)
     ops = graph.spec.operators
     print(
         f"{args.graph}: ok ({len(ops)} operators, {sum(o.replicas for o in ops)} processes; sources {graph.sources()}, sinks {graph.sinks()})"

@@ -11,7 +11,9 @@ from umad_common.commands.checks import (
     free_hub_port,
     lidar_notice,
     print_notice,
+    print_open_access_warning,
     source_drives,
+    tls_hub,
     writable_output,
 )
 from umad_common.commands.common import add_graph_argument
@@ -39,6 +41,9 @@ def run(args) -> int:
     path = str(LIVE_GRAPH) if args.live else args.graph
     graph = checked_graph(path, args.set, local=True, runs=True)
     print_notice(lidar_notice(graph, source_drives(graph), "the replayer's drives"))
+    if args.hub:
+        tls_hub(args.hub, "--hub", graph)
+    print_open_access_warning(graph, path)
     free_hub_port(args.hub or graph.spec.hub, "--hub" if args.hub else f"{path}: hub")
     if args.record:
         writable_output(args.record, "--record", folder=False)

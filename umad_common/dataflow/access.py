@@ -6,17 +6,21 @@ the hub to it; key layout in docs/design.md):
 
 - every role learns the graph's declarations (who subscribes, answers, is alive: egress
   `declare_subscriber`, `declare_queryable`, `liveliness_token`), which Zenoh needs to route at all;
-- `operator:<id>` publishes that operator's outputs, its stats, acks, goodbyes, and (ordered
-  operators) resend requests to the sources; reads its declared inputs, acks, goodbyes and
-  liveliness; answers commands on its own `_ctl` key and payload fetches under its own `_payload`
-  prefix; fetches payloads of its inputs' producers;
-- `control` asks `_ctl` (`umad set`, `umad op start|stop`) and `_graph`;
-- `observer` reads every channel, liveliness, `_graph`, and fetches payloads; publishes nothing;
+- `operator:<id>` publishes that operator's outputs, and its stats, acks and goodbyes under its
+  own name (`_stats/<id>/*`, `_ack/<id>/*`, `_left/<id>/*`); an ordered operator also asks the
+  sources upstream of it to resend a run (`_resend/<source>`); reads its declared inputs, every
+  goodbye and liveliness, and a source also every ack and its own `_resend` key; answers commands on
+  its own `_ctl` key and payload fetches under its own `_payload` prefix; fetches payloads of its
+  inputs' producers. No operator may command another, nor itself: `_ctl` is asked by `control` and
+  the launcher only;
+- `control` asks `_ctl` (`umad set`, `umad op start|stop`) and the graph's own `_graph`;
+- `observer` reads every channel, liveliness, the graph's own `_graph`, and fetches payloads;
+  publishes nothing;
 - `launcher` (the hub certificate, which the launcher and its recorder present) may do everything
   in the graph.
 
-Acks, goodbyes and stats carry the sender in their payload, not in their key, so an operator could
-still write a false one there; frames, commands and payloads are bound to their operator by key.
+Every key a certificate may write names its operator, so it can pass for no other; the receivers of
+acks and goodbyes check that the key names the sender the message claims (`service_messages.py`).
 """
 
 from __future__ import annotations
@@ -46,13 +50,13 @@ def _rule(name: str, messages: list[str], flow: str, key_exprs: list[str]) -> di
 def role_rules(graph: Graph, role: str) -> list[dict]:
     """What one role may do in `graph`, as Zenoh ACL rules (ids unique within the role)."""
     keys = Keys(graph.name)
-    everything = [f"{keys.root}/**", Keys.ALL_GRAPHS]
+    everything = [f"{keys.root}/**"]
     if role == "launcher":
         return [_rule("all", ALL_MESSAGES, "both", everything)]
     rules = [_rule("declarations", DECLARATIONS, "egress", everything)]
     graph_info = [
-        _rule("ask_graph", ["query"], "ingress", [Keys.ALL_GRAPHS]),
-        _rule("graph", ["reply"], "egress", [Keys.ALL_GRAPHS]),
+        _rule("ask_graph", ["query"], "ingress", [keys.graph_info]),
+        _rule("graph", ["reply"], "egress", [keys.graph_info]),
     ]
     if role == "control":
         return [
@@ -80,11 +84,13 @@ def role_rules(graph: Graph, role: str) -> list[dict]:
     spec, cls = graph.op(op_id), graph.classes[op_id]
     sources = [source for port in spec.inputs for source in spec.sources_of(port)]
     producers = sorted({op for source in sources for op, _ in graph.producers(source)})
-    shared = [keys.ack, keys.left]
-    reads = [keys.pattern(source) for source in sources] + [keys.control(op_id), *shared]
-    publishes = [keys.data(op_id, out) for out in cls.outputs] + [keys.stats(op_id, "*"), *shared]
-    if cls.ordered:  # an ordered operator that restarts mid-run asks the sources to resend the run
-        publishes += [keys.control(source) for source in graph.sources()]
+    reads = [keys.pattern(source) for source in sources] + [keys.left_all]
+    if op_id in graph.sources():  # acks of every sink, and rewinds of its ordered consumers
+        reads += [keys.ack_all, keys.resend(op_id)]
+    own_names = [keys.stats(op_id, "*"), keys.ack(op_id, "*"), keys.left(op_id, "*")]
+    publishes = [keys.data(op_id, out) for out in cls.outputs] + own_names
+    if cls.ordered:  # an ordered operator that restarts mid-run asks its sources to resend the run
+        publishes += [keys.resend(source) for source in graph.upstream_sources(op_id)]
     own_services = [keys.control(op_id), f"{keys.payload(op_id)}/*"]
     fetches = [f"{keys.payload(op)}/*" for op in producers]
     rules += [

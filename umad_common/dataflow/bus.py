@@ -243,7 +243,12 @@ RECORDER = "_recorder"  # the launcher's recorder, in acks and liveliness: it ac
 
 
 class Keys:
-    """Key names of one graph: `umad/<graph>/<operator>/<output>` and the underscore-prefixed service keys."""
+    """Key names of one graph: `umad/<graph>/<operator>/<output>` and the underscore-prefixed service keys.
+
+    A message whose effect depends on who sent it travels on a key that names the sender (acks,
+    goodbyes, stats: `_ack/<op>/<replica>`), so the hub's access control can let each certificate
+    write only under its own name, and the receiver checks that the key names the sender the message
+    claims (`service_messages.py`)."""
 
     ALL_GRAPHS = "umad/*/_graph"  # every launcher on a hub answers here
 
@@ -275,17 +280,29 @@ class Keys:
         """The launcher answers here with the graph it runs: name, file, hub, operators."""
         return f"{self.root}/_graph"
 
+    def resend(self, source: str) -> str:
+        """Where an ordered operator asks source `source` to send a run's frames again (a rewind):
+        a key of its own, apart from `_ctl`, so that the right to ask for frames is no right to command."""
+        return f"{self.root}/_resend/{source}"
+
+    def ack(self, op: str, replica: str) -> str:
+        """Where replica `replica` of `op` (or the recorder) acks the frames it finished."""
+        return f"{self.root}/_ack/{op}/{replica}"
+
     @property
-    def ack(self) -> str:
-        return f"{self.root}/_ack"
+    def ack_all(self) -> str:
+        return f"{self.root}/_ack/*/*"
 
     def live(self, op: str, replica: str) -> str:
         return f"{self.root}/_live/{op}/{replica}"
 
+    def left(self, op: str, replica: str) -> str:
+        """Where replica `replica` of `op`, stopping on purpose, says goodbye before its token goes."""
+        return f"{self.root}/_left/{op}/{replica}"
+
     @property
-    def left(self) -> str:
-        """Where a replica that stops on purpose says goodbye before its token goes."""
-        return f"{self.root}/_left"
+    def left_all(self) -> str:
+        return f"{self.root}/_left/*/*"
 
     @property
     def live_all(self) -> str:
@@ -308,6 +325,12 @@ class Keys:
         """`umad/<graph>/_live/<op>/<replica>` -> (op, replica)."""
         parts = key.split("/")
         return parts[-2], parts[-1]
+
+    def sender(self, key: str, service: str) -> tuple[str, str] | None:
+        """The (operator, replica) that `key` names as its sender if it is `umad/<graph>/<service>/<op>/<replica>`
+        (`service`: `_ack`, `_left` or `_stats`); None for any other key."""
+        parts = key[len(self.root) + 1 :].split("/") if key.startswith(self.root + "/") else []
+        return (parts[1], parts[2]) if len(parts) == 3 and parts[0] == service else None
 
 
 class ShutdownSignal:

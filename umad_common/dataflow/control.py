@@ -1,5 +1,6 @@
-"""Commands a replica takes on its control key (`umad set`, `umad op stop`, a rewind's resend
-request): each is applied between frames and answered with its outcome."""
+"""Commands a replica takes on its control key (`umad set`, `umad op stop`), which only the `control`
+certificate and the launcher may reach: each is applied between frames and answered with its
+outcome. A rewind's resend request is no command: it has a key of its own (`service_messages.py`)."""
 
 from __future__ import annotations
 
@@ -15,21 +16,18 @@ if TYPE_CHECKING:
 
 
 def apply_command(rt: OperatorRuntime, payload: bytes) -> dict[str, str]:
-    """Stop, resend or a parameter change; returns the outcome the asking command prints. A
+    """A stop or a parameter change; returns the outcome the asking command prints. A
     change that fails validation, needs an input the graph does not wire to this operator, or
     that the operator refuses (a weight file that does not load), is logged and counted; the old
     parameters stay."""
     try:
         command = json.loads(payload)
         if not isinstance(command, dict):
-            raise TypeError(f"expected a JSON object with `set`, `stop` or `resend`, got {type(command).__name__}")
+            raise TypeError(f"expected a JSON object with `set` or `stop`, got {type(command).__name__}")
         if command.get("stop"):
             rt.log.info("stop requested on the control key")
             rt.shutdown.set()
             return {"status": "stopping"}
-        if "resend" in command:
-            rt.resend_requests.append(command["resend"])
-            return {"status": "resending"}
         updates = command["set"]
         if not isinstance(updates, dict):
             raise TypeError(f"`set` must map parameter names to values, got {type(updates).__name__}")

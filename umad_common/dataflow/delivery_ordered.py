@@ -14,13 +14,13 @@ joiner has complete."""
 from __future__ import annotations
 
 import hashlib
-import json
 import time
 from collections import defaultdict
 from typing import TYPE_CHECKING
 
 from umad_common.dataflow.messages import Message
 from umad_common.dataflow.operator import Frame
+from umad_common.dataflow.service_messages import encode_resend
 
 if TYPE_CHECKING:
     from umad_common.dataflow.runtime import OperatorRuntime
@@ -134,9 +134,8 @@ class OrderedDelivery:
         if now - self.rewinds.get(run, -1e9) < REWIND_RETRY_S:
             return False
         self.rewinds[run] = now
-        for source in rt.graph.sources():
-            request = {"resend": {"run": run, "from": 0, "to": seq, "for": rt.op_id}}
-            rt.session.put(rt.keys.control(source), json.dumps(request))
+        for source in rt.graph.upstream_sources(rt.op_id):
+            rt.session.put(rt.keys.resend(source), encode_resend(run, 0, seq, rt.op_id))
         return True
 
     def end_run(self, msg: Message) -> None:

@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from umad_common import DEFAULT_GRAPH, LIVE_GRAPH, resolve_path
 from umad_common.dataflow.assignments import GraphError, merge_params
 from umad_common.dataflow.bus import DEFAULT_HUB, TlsConfig
-from umad_common.dataflow.certificates import operator_identity
+from umad_common.dataflow.certificates import bundle_paths, operator_identity
 from umad_common.dataflow.operator import Operator, Source, UnknownOperatorError, load_operator_class
 from umad_common.dataflow.pacing import SourceParams
 from umad_common.dataflow.shm_payloads import SharedPayloads
@@ -44,8 +44,9 @@ class TlsSpec(BaseModel):
     key: str = Field(description="hub private key (PEM)")
     certs: str | None = Field(
         None,
-        description="folder of the other processes' certificates as `umad certs` writes them (op-<id>.pem/.key, "
-        "control.pem/.key, observer.pem/.key); a process given --cert/--key uses those instead",
+        description="folder of the holders' bundles as `umad certs` writes them, one folder per holder (op-<id>/, "
+        "control/, observer/), each with ca.pem and the holder's own <name>.pem/.key; a process given "
+        "--cert/--key uses those instead (and the ca.pem beside them, if there is one)",
     )
 
 
@@ -137,23 +138,26 @@ class Graph:
     ) -> TlsConfig | None:
         """The graph's TLS settings for one process, paths resolved against `base_dir`.
 
-        The process presents `cert`/`key` where given (a host holding only its own certificate), else
-        the certificate named `identity` (`umad_common.dataflow.certificates`) in the graph's
-        `tls.certs` folder; `identity` None: the hub's, which the launcher presents too."""
+        The process presents `cert`/`key` where given (a host holding only its own certificate), and
+        trusts the `ca.pem` beside `cert` if there is one; else the certificate named `identity`
+        (`umad_common.dataflow.certificates`) from its bundle in the graph's `tls.certs` folder, and
+        the bundle's CA; `identity` None: the hub's, which the launcher presents too."""
         tls = self.spec.tls
         if tls is None:
             return None
-        hub_cert, hub_key = str(self.base_dir / tls.cert), str(self.base_dir / tls.key)
+        root_ca, hub_cert, hub_key = (str(self.base_dir / path) for path in (tls.root_ca, tls.cert, tls.key))
         if cert or key:
             client_cert, client_key = cert, key
+            beside = Path(cert).parent / "ca.pem" if cert else None
+            root_ca = str(beside) if beside is not None and beside.is_file() else root_ca
         elif identity is None:
             client_cert, client_key = hub_cert, hub_key
         elif tls.certs:
-            folder = self.base_dir / tls.certs
-            client_cert, client_key = str(folder / f"{identity}.pem"), str(folder / f"{identity}.key")
+            paths = bundle_paths(self.base_dir / tls.certs, identity)
+            root_ca, client_cert, client_key = (str(path) for path in paths)
         else:
             client_cert, client_key = None, None
-        return TlsConfig(str(self.base_dir / tls.root_ca), hub_cert, hub_key, client_cert, client_key)
+        return TlsConfig(root_ca, hub_cert, hub_key, client_cert, client_key)
 
     def op(self, op_id: str) -> OperatorSpec:
         for spec in self.spec.operators:
@@ -183,6 +187,18 @@ class Graph:
 
     def sources(self) -> list[str]:
         return [s.id for s in self.spec.operators if issubclass(self.classes[s.id], Source)]
+
+    def upstream_sources(self, op_id: str) -> list[str]:
+        """The sources whose frames reach `op_id`, directly or through other operators: those a
+        restarted ordered operator asks to resend a run."""
+        upstream: set[str] = set()
+        todo = [op_id]
+        while todo:
+            spec = self.op(todo.pop())
+            read = {op for port in spec.inputs for source in spec.sources_of(port) for op, _ in self.producers(source)}
+            todo += read - upstream
+            upstream |= read
+        return [op for op in self.sources() if op in upstream]
 
     def topological_order(self) -> list[str]:
         """Operator ids, each after every operator it reads from (the graph has no cycles)."""
@@ -347,16 +363,19 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
 
 
 def _security_problems(spec: GraphSpec) -> list[str]:
+    problems = []
+    if spec.tls is not None and not spec.hub.startswith("tls/"):
+        problems.append(
+            f"tls: the hub {spec.hub!r} is not a tls/HOST:PORT endpoint, so no certificate is checked and every "
+            f"message travels in clear; write `hub: tls/{spec.hub.partition('/')[2]}`"
+        )
     if spec.security is None:
-        return []
+        return problems
     if spec.tls is None:
         return [
             "security: roles are given by certificate, so the graph needs a tls: block (root_ca, cert, key, "
             "certs) and a tls/HOST:PORT hub; `umad certs GRAPH --out DIR` makes the certificates"
         ]
-    problems = []
-    if not spec.hub.startswith("tls/"):
-        problems.append(f"security: the hub {spec.hub!r} is not a tls/HOST:PORT endpoint, so no certificate is checked")
     ids = {op.id for op in spec.operators}
     for name, role in spec.security.roles.items():
         op_id = role.partition(":")[2] if role.startswith("operator:") else None
@@ -395,7 +414,9 @@ def missing_local_files(graph: Graph) -> list[str]:
         for op in graph.spec.operators:
             own = graph.tls_config(operator_identity(op.id))
             if not Path(own.client_cert).is_file():
-                problems.append(f"operator {op.id!r}: certificate {own.client_cert} not found (tls.certs)")
+                problems.append(
+                    f"operator {op.id!r}: certificate {own.client_cert} not found (its bundle in tls.certs)"
+                )
     return problems
 
 

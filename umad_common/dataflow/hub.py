@@ -19,6 +19,7 @@ import re
 import sys
 import threading
 import time
+from pathlib import Path
 
 import zenoh
 
@@ -119,12 +120,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root-ca", default=None)
     parser.add_argument("--cert", default=None)
     parser.add_argument("--key", default=None)
-    parser.add_argument("--access-control", default=None, help="Zenoh access_control as JSON")
+    parser.add_argument(
+        "--access-control", default=None, help="file of Zenoh's access_control as JSON (the launcher's, mode 0600)"
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     shutdown = ShutdownSignal()
     tls = TlsConfig(args.root_ca, args.cert, args.key) if args.cert else None
-    access_control = json.loads(args.access_control) if args.access_control else None
+    access_control = json.loads(Path(args.access_control).read_text()) if args.access_control else None
     if access_control is not None:
         read_refusals_from_stdout()
     session = open_hub(args.listen, tls, access_control)

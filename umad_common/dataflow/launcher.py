@@ -23,6 +23,7 @@ import queue
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections import defaultdict, deque
@@ -70,6 +71,14 @@ class Replica:
         return f"{self.op_id}.{self.index}"
 
 
+def access_control_file(graph: Graph) -> Path:
+    """The graph's Zenoh access control (`access.py`) as JSON in a new file of mode 0600."""
+    handle, path = tempfile.mkstemp(prefix=f"umad-{graph.name}-access-", suffix=".json")
+    with os.fdopen(handle, "w") as out:
+        json.dump(access_control(graph), out)
+    return Path(path)
+
+
 def process_cpu_s(pid: int) -> float | None:
     """CPU seconds (user + system) process `pid` has used so far; None where /proc cannot say."""
     try:
@@ -95,6 +104,7 @@ class Launcher:
     ):
         self.quiet = quiet
         self.hub_replica: Replica | None = None
+        self.access_file: Path | None = None  # the hub's access control, removed when the hub stops for good
         self.hub_cpu_s: float | None = None  # the hub process's CPU over its life, read as it is stopped
         self.tails: dict[str, deque[str]] = defaultdict(lambda: deque(maxlen=30))
         self.graph = graph
@@ -126,12 +136,15 @@ class Launcher:
                 self.replicas.append(Replica(spec.id, index, cmd, spec.id in sources))
 
     def _hub_command(self) -> list[str]:
+        """The hub's command line. A graph's access control goes to the hub in a file only this user
+        may read (`access_control_file`), not on the command line, which every local user sees."""
         cmd = [sys.executable, "-m", "umad_common.dataflow.hub", "--listen", self.hub]
         tls = self.graph.tls_config()
         if tls is not None:
             cmd += ["--root-ca", tls.root_ca, "--cert", tls.cert, "--key", tls.key]
         if self.graph.spec.security is not None:
-            cmd += ["--access-control", json.dumps(access_control(self.graph))]
+            self.access_file = access_control_file(self.graph)
+            cmd += ["--access-control", str(self.access_file)]
         return cmd
 
     def _command(self, graph: Graph, graph_file: Path, spec: OperatorSpec, index: int) -> list[str]:
@@ -257,6 +270,8 @@ class Launcher:
             except subprocess.TimeoutExpired:
                 self.hub_replica.proc.kill()
                 self.hub_replica.proc.wait()
+        if self.access_file is not None:
+            self.access_file.unlink(missing_ok=True)
         cleanup_stale_shm()
 
     def _signal_all(self, sig: signal.Signals) -> None:
@@ -499,10 +514,12 @@ class Launcher:
         return {"status": "applied", "message": f"started {op_id} ({spec.replicas} replicas)"}
 
     def _on_stats(self, sample: zenoh.Sample) -> None:
+        """A replica's stats, taken only where the key names the replica the stats claim to be."""
         try:
             data = json.loads(sample.payload.to_bytes())
-            self.stats[f"{data['op']}.{data['replica']}"] = data
-        except (ValueError, KeyError):
+            if self.keys.sender(str(sample.key_expr), "_stats") == (data["op"], data["replica"]):
+                self.stats[f"{data['op']}.{data['replica']}"] = data
+        except (ValueError, KeyError, TypeError):
             pass
 
     def _print_summary(self) -> None:

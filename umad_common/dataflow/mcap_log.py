@@ -107,7 +107,7 @@ class McapRecorder:
         with self._lock:
             channel = self._channels.get(key)
             if channel is None:
-                encoding = "json" if "/_ctl/" in key else "msgpack"
+                encoding = "json" if "/_ctl/" in key or "/_resend/" in key else "msgpack"
                 channel = self._channels[key] = self._writer.register_channel(key, encoding, 0)
             self._writer.add_message(channel, log_time_of(stamp), bytes(payload), stamp, seq)
             self.count += 1

@@ -30,13 +30,13 @@ import time
 from collections import Counter, OrderedDict, defaultdict
 from pathlib import Path
 
-import msgpack
 import zenoh
 
 from umad_common.dataflow.bus import RECORDER, Keys
 from umad_common.dataflow.graph import Graph
 from umad_common.dataflow.mcap_log import RECORDING_METADATA, McapRecorder
 from umad_common.dataflow.payload_ring import PayloadReader, fetch
+from umad_common.dataflow.service_messages import ServiceMessageError, encode_ack, read_ack
 
 log = logging.getLogger("umad.record")
 
@@ -47,6 +47,7 @@ ACKED_REMEMBERED = 4096  # recorded frames remembered for re-acks
 WARN_FIRST = 5  # lost payloads logged one by one, then one line per WARN_INTERVAL_S
 WARN_INTERVAL_S = 5.0
 SERVICE_KEYS = ("_stats", "_live", "_left")  # bus traffic that is not recorded
+RECORDER_REPLICA = "0"  # the recorder's replica name in its liveliness token and its acks' key
 
 
 class Recording:
@@ -68,7 +69,7 @@ class Recording:
         self._live: dict[str, set[str]] = {}  # op -> its live replicas, once seen
         self._session = session
         self._payloads = PayloadReader()
-        self._writes: queue.Queue = queue.Queue()  # ("data", key, bytes) | ("ack", bytes) | None to stop
+        self._writes: queue.Queue = queue.Queue()  # ("data" | "ack", key, bytes) | None to stop
         self._fetches: queue.Queue = queue.Queue()  # (key, reference) of payloads on another host's ring
         self._pending: dict[tuple[str, int], set[str]] = defaultdict(set)  # frame -> channels written
         self._sink_acks: dict[tuple[str, int], set[str]] = defaultdict(set)
@@ -78,12 +79,14 @@ class Recording:
         self.lost: Counter[str] = Counter()  # channel -> payloads that could not be read
         self._last_warning = 0.0
         self._closing = threading.Event()
-        self._ack_pub = session.declare_publisher(self.keys.ack, congestion_control=zenoh.CongestionControl.BLOCK)
+        self._ack_pub = session.declare_publisher(
+            self.keys.ack(RECORDER, RECORDER_REPLICA), congestion_control=zenoh.CongestionControl.BLOCK
+        )
         self._declared = [
             session.liveliness().declare_subscriber(self.keys.live_all, self._on_live, history=True),
             session.declare_subscriber(f"{self.keys.root}/**", self._on_sample),
         ]
-        self._token = session.liveliness().declare_token(self.keys.live(RECORDER, "0"))
+        self._token = session.liveliness().declare_token(self.keys.live(RECORDER, RECORDER_REPLICA))
         self._writer = threading.Thread(target=self._write_loop, name="recording-writer", daemon=True)
         self._fetcher = threading.Thread(target=self._fetch_loop, name="recording-fetcher", daemon=True)
         self._writer.start()
@@ -113,7 +116,7 @@ class Recording:
             return
         raw = sample.payload.to_bytes()
         if service == "_ack":
-            self._writes.put(("ack", raw))
+            self._writes.put(("ack", key, raw))
             return
         payload = self._payloads.take(raw)
         if payload is None:  # a publisher on another host, or a payload already overwritten
@@ -158,9 +161,9 @@ class Recording:
                 if item and item[0] == "data":
                     self._record(item[1], item[2])
                 elif item:
-                    self._take_sink_ack(item[1])
+                    self._take_sink_ack(item[1], item[2])
             except Exception:  # e.g. the disk is full: say so, count it, keep the file closable
-                log.exception("could not record a message on %s", item[1] if item[0] == "data" else "_ack")
+                log.exception("could not record a message on %s", item[1])
                 if item[0] == "data":
                     self.lost[item[1]] += 1
             finally:
@@ -187,12 +190,13 @@ class Recording:
         whose every replica has left (stopped with `umad op stop`, or crashed and not back yet)."""
         return {key for op, keys in self._outputs.items() if self._live.get(op, True) for key in keys}
 
-    def _take_sink_ack(self, raw: bytes) -> None:
+    def _take_sink_ack(self, key: str, raw: bytes) -> None:
+        """A sink's ack, taken only where its key names the sink it claims to come from (the sources log the others)."""
         try:
-            ack = msgpack.unpackb(raw)
-            frame, op = (str(ack["run"]), int(ack["seq"])), str(ack["op"])
-        except Exception:
+            ack = read_ack(self.keys, key, raw)
+        except ServiceMessageError:
             return
+        frame, op = (ack.run, ack.seq), ack.op
         if op not in self.sinks or frame in self._acked:
             return
         self._sink_acks[frame].add(op)
@@ -218,7 +222,7 @@ class Recording:
         while len(self._acked) > ACKED_REMEMBERED:
             self._acked.popitem(last=False)
         try:
-            self._ack_pub.put(msgpack.packb({"run": frame[0], "seq": frame[1], "op": RECORDER}))
+            self._ack_pub.put(encode_ack(frame[0], frame[1], RECORDER))
         except zenoh.ZError:  # the session is closing
             pass
 

@@ -14,6 +14,8 @@ Where each part lives:
   - `frame_processing.py`: what every path does with a frame it finishes (compute, cache, publish,
     ack) and with a run's end;
   - `control.py`: the commands on the control key; `replica.py`: the process around a replica;
+  - `service_messages.py`: acks, goodbyes and resend requests, each taken only from the sender its
+    key names;
   - `delivery.py`: the bookkeeping (joiner, membership, output cache, stats);
   - `source_driver.py`: how a source paces, re-sends and closes runs.
 
@@ -30,7 +32,8 @@ Delivery protocol (lossless by design):
   - after the last frame of a run is acked the source sends an end-of-run marker (meta `eos`),
     which each operator passes on after calling its `end_run`.
 
-Commands arrive as queries on the control key and are answered once applied or refused; what does
+Commands arrive as queries on the control key and are answered once applied or refused; a source
+takes resend requests on a key of its own (`_resend/<source>`), nothing else there. What does
 not change while the graph runs (is this replica a sink, which producers feed a wildcard port) is
 worked out once, or again when the live membership changes, never per frame.
 """
@@ -47,7 +50,6 @@ import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-import msgpack
 import zenoh
 
 from umad_common.dataflow.bus import Keys, answer
@@ -62,6 +64,14 @@ from umad_common.dataflow.messages import Message, MessageError, decode, encode
 from umad_common.dataflow.operator import Context, Operator, Output, Source
 from umad_common.dataflow.pacing import JoinParams
 from umad_common.dataflow.payload_ring import SWEPT_BY_LAUNCHER, PayloadReader, PayloadRing, fetch
+from umad_common.dataflow.service_messages import (
+    IgnoredMessages,
+    ServiceMessageError,
+    encode_ack,
+    encode_goodbye,
+    read_goodbye,
+    read_resend,
+)
 from umad_common.dataflow.shm_payloads import DEFAULT_POOL_MIB, ZenohShmPayloads, payload_plane
 from umad_common.dataflow.source_driver import SourceDriver
 
@@ -134,6 +144,7 @@ class OperatorRuntime:
         self.keys = Keys(graph.name)
         self.stats = Stats()
         self.log = logging.getLogger(f"umad.{op_id}")
+        self.ignored = IgnoredMessages(self.log, self.stats)  # forged or misplaced service messages
         context = Context(op_id, replica, graph.name, graph.base_dir, self.log)
         if replay_log and issubclass(self.cls, Source):
             from umad_common.dataflow.log_source import LoggedSource
@@ -154,7 +165,9 @@ class OperatorRuntime:
             out: session.declare_publisher(self.keys.data(op_id, out), congestion_control=zenoh.CongestionControl.BLOCK)
             for out in self.cls.outputs
         }
-        self.ack_pub = session.declare_publisher(self.keys.ack, congestion_control=zenoh.CongestionControl.BLOCK)
+        self.ack_pub = session.declare_publisher(
+            self.keys.ack(op_id, self.replica_id), congestion_control=zenoh.CongestionControl.BLOCK
+        )
         self.stats_pub = session.declare_publisher(
             self.keys.stats(op_id, self.replica_id), congestion_control=zenoh.CongestionControl.DROP
         )
@@ -199,14 +212,15 @@ class OperatorRuntime:
                 )
 
     def _subscribe_service(self) -> None:
-        control = self.keys.control(self.op_id)
-        self.subscribe(control, lambda s: self._service_event("ctl", (s.payload.to_bytes(), None)))  # e.g. resend
         self._subscribers.append(
             self.session.declare_queryable(
-                control, lambda q: self._service_event("ctl", (q.payload.to_bytes() if q.payload else b"", q))
+                self.keys.control(self.op_id),
+                lambda q: self._service_event("ctl", (q.payload.to_bytes() if q.payload else b"", q)),
             )
         )
-        self.subscribe(self.keys.left, lambda s: self._service_event("left", s))
+        if isinstance(self.operator, Source):  # a restarted ordered operator's rewind
+            self.subscribe(self.keys.resend(self.op_id), lambda s: self._service_event("resend", s))
+        self.subscribe(self.keys.left_all, lambda s: self._service_event("left", s))
         if self.ring is not None:  # subscribers that cannot map the ring fetch payloads here
             self._subscribers.append(self.session.declare_queryable(self.ring.fetch_key, self.ring.serve))
         self._subscribers.append(
@@ -290,19 +304,21 @@ class OperatorRuntime:
                         self._replica_gone(rep)
                 changed = True
             elif kind == "left":
+                key = str(sample.key_expr)
                 try:
-                    note = msgpack.unpackb(sample.payload.to_bytes())
-                    self.members.leave(str(note["op"]), str(note["replica"]))
+                    self.members.leave(*read_goodbye(self.keys, key, sample.payload.to_bytes()))
                     changed = True
-                except Exception:
-                    self.stats.bad_messages += 1
+                except ServiceMessageError as exc:
+                    self.ignored.ignore(key, exc)
+            elif kind == "resend":
+                try:
+                    self.resend_requests.append(read_resend(sample.payload.to_bytes()))
+                except ServiceMessageError as exc:
+                    self.ignored.ignore(str(sample.key_expr), exc)
             else:
                 payload, query = sample
                 outcome = apply_command(self, payload)
-                if query is not None:
-                    answer(
-                        query, self.keys.control(self.op_id), {"op": self.op_id, "replica": self.replica_id, **outcome}
-                    )
+                answer(query, self.keys.control(self.op_id), {"op": self.op_id, "replica": self.replica_id, **outcome})
 
     def _realtime_rates(self) -> list[float]:
         """The `rate_hz` of every source that paces in real time (none: the graph is lossless)."""
@@ -408,7 +424,7 @@ class OperatorRuntime:
             self.stats.frames_out += 1
 
     def ack(self, run: str, seq: int) -> None:
-        self.ack_pub.put(msgpack.packb({"run": run, "seq": seq, "op": self.op_id}))
+        self.ack_pub.put(encode_ack(run, seq, self.op_id))
 
     def markers(self, run: str, seq: int, stamp_ns: int, meta: dict) -> list[tuple[str, bytes]]:
         """Array-less messages on every output: an end-of-run marker or a frame's error marker."""
@@ -428,7 +444,7 @@ class OperatorRuntime:
             self.log.info("ready: %s -> %s", dict(self.spec.inputs), list(self.cls.outputs))
             self._transform_loop()
         finally:
-            self.session.put(self.keys.left, msgpack.packb({"op": self.op_id, "replica": self.replica_id}))
+            self.session.put(self.keys.left(self.op_id, self.replica_id), encode_goodbye(self.op_id, self.replica_id))
             token.undeclare()
             self.publish_stats(force=True)
             self.reader.close()

@@ -12,13 +12,12 @@ from collections.abc import Callable, Iterator
 from functools import partial
 from typing import Any, Protocol
 
-import msgpack
-
 from umad_common.dataflow.bus import RECORDER, Keys
 from umad_common.dataflow.delivery import LatencyWindow, Membership, Stats
 from umad_common.dataflow.graph import Graph
 from umad_common.dataflow.operator import Output, Source, SourceFrame
 from umad_common.dataflow.pacing import SourceParams
+from umad_common.dataflow.service_messages import IgnoredMessages, ServiceMessageError, read_ack
 
 LIVE_WAIT_S = 60.0
 PRIME_S = 3.0  # realtime pacing: the longest start-up before the camera's clock starts (`_prime`)
@@ -36,6 +35,7 @@ class SourceHost(Protocol):
     shutdown: threading.Event
     members: Membership  # the live operators and their replicas
     resend_requests: list[dict]  # frames a restarted ordered operator asked for; the driver takes them
+    ignored: IgnoredMessages  # acks that are malformed or claim another sender than their key
 
     def subscribe(self, key: str, callback: Callable[[Any], None]) -> None: ...
 
@@ -76,7 +76,8 @@ class SourceDriver:
         self.max_frames = max_frames
         self.sinks = set(graph.sinks())
         self.acks: dict[tuple[str, int], set[str]] = defaultdict(set)
-        self.ack_q: queue.Queue = queue.Queue()
+        self.keys = Keys(graph.name)
+        self.ack_q: queue.Queue = queue.Queue()  # (key, payload) of each ack
         self.inflight: dict[tuple[str, int], tuple[list[tuple[str, bytes]], float, float]] = {}
         self.e2e = LatencyWindow()
         self.markers: set[tuple[str, int]] = set()  # end-of-run keys, which are not frames
@@ -89,7 +90,7 @@ class SourceDriver:
 
     def run(self) -> None:
         host = self.host
-        host.subscribe(Keys(self.graph.name).ack, lambda s: self.ack_q.put(s.payload.to_bytes()))
+        host.subscribe(self.keys.ack_all, lambda s: self.ack_q.put((str(s.key_expr), s.payload.to_bytes())))
         self._wait_for_graph()
         host.stats.total_frames = self.source.total_frames()
         if self.max_frames is not None and host.stats.total_frames is not None:
@@ -279,24 +280,24 @@ class SourceDriver:
             self.inflight[key] = (payloads, now, now)
 
     def _service(self, timeout: float) -> None:
-        """Take acks, retransmit what timed out, answer resend requests, publish stats."""
+        """Take acks (each from the sender its key names), retransmit what timed out, answer resend
+        requests, publish stats."""
         host = self.host
         host.handle_service()
         host.publish_stats()
         while host.resend_requests:
             self._resend(host.resend_requests.pop(0))
         try:
-            raw = self.ack_q.get(timeout=timeout)
+            received = self.ack_q.get(timeout=timeout)
         except queue.Empty:
-            raw = None
-        while raw is not None:
+            received = None
+        while received is not None:
             try:
-                ack = msgpack.unpackb(raw)
-                key = (str(ack["run"]), int(ack["seq"]))
-                op = str(ack["op"])
-            except Exception:
-                host.stats.bad_messages += 1
+                ack = read_ack(self.keys, *received)
+            except ServiceMessageError as exc:
+                host.ignored.ignore(received[0], exc)
             else:
+                key, op = (ack.run, ack.seq), ack.op
                 ackers = self._ackers()
                 if key in self.inflight and op in ackers:
                     self.acks[key].add(op)
@@ -308,9 +309,9 @@ class SourceDriver:
                         self.e2e.add(time.monotonic() - first_sent)
                         host.stats.latency.add(time.monotonic() - first_sent)
             try:
-                raw = self.ack_q.get_nowait()
+                received = self.ack_q.get_nowait()
             except queue.Empty:
-                raw = None
+                received = None
         now = time.monotonic()
         if not self.inflight or now - min(last for _, _, last in self.inflight.values()) <= self.pacing.ack_timeout_s:
             return  # nothing can be due: the percentiles below cost more than this whole call
@@ -341,14 +342,14 @@ class SourceDriver:
                 host.publish(self._payloads(self.source.frame_or_error(run, seq)))
         except NotImplementedError:
             host.log.error(
-                "%s cannot resend frames (no frame_at); %s must start its run over", host.op_id, request.get("for")
+                "%s cannot resend frames (no frame_at); %s must start its run over", host.op_id, request["for"]
             )
             return
-        except (KeyError, ValueError, TypeError, IndexError) as exc:
+        except (KeyError, ValueError, TypeError, IndexError) as exc:  # a run or frame this source does not have
             host.stats.errors += 1
             host.log.error("bad resend request %r: %s", request, exc)
             return
-        host.log.info("resent %s#%d..%d for %s", run, first, last - 1, request.get("for"))
+        host.log.info("resent %s#%d..%d for %s", run, first, last - 1, request["for"])
 
     def _end_run(self, run: str, frames: int, stamp_ns: int) -> None:
         """Drain the run's frames, then send its end-of-run marker until every sink acked it."""
