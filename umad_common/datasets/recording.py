@@ -2,11 +2,14 @@
 
 What is read, and with which library (no message parser of our own):
 
-- a rosbag2 folder (`metadata.yaml` with MCAP or SQLite3 storage) or a bare `.db3`: `rosbags`, which
-  decodes ROS 2 CDR with the definitions the bag embeds (the ROS distribution's otherwise);
-- a bare `.mcap`: `mcap`, its messages decoded by `mcap-ros2-support` (ROS 2 CDR),
-  `mcap-protobuf-support` (Foxglove schemas in protobuf) or `json`. zstd- and lz4-compressed chunks
-  are read as they are. A file cut off by a crash is read up to the damage with `allow_truncated`.
+- a bare `.mcap`, or a rosbag2 folder (`metadata.yaml`) of one `.mcap` file: `mcap`, its messages
+  decoded by `mcap-ros2-support` (ROS 2 CDR), `mcap-protobuf-support` (Foxglove schemas in protobuf)
+  or `json`; the message times from the file's indexes, no payload read. zstd- and lz4-compressed
+  chunks are read as they are. A file cut off by a crash is read up to the damage with
+  `allow_truncated`;
+- any other rosbag2 folder (SQLite3 storage, a split or file-compressed bag, IDL definitions) or a
+  bare `.db3`: `rosbags`, which decodes ROS 2 CDR with the definitions the bag embeds (the ROS
+  distribution's otherwise).
 
 One drive per recording; the camera is the clock. Its messages, in log-time order (the time the
 recorder received them: what `ros2 bag play` and Foxglove order by), are the frames; each frame takes
@@ -144,14 +147,12 @@ def ros_typestore():
 
 
 class McapStore(MessageStore):
-    """A bare MCAP file of ROS 2 (CDR), protobuf or JSON messages, read with `mcap` and the MCAP
-    authors' decoders. One pass indexes its chunks and message times (a file cut off by a crash up to
-    the damage); a frame then reads only the chunks that overlap its time."""
+    """An MCAP file of ROS 2 (CDR), protobuf or JSON messages, read with `mcap` and the MCAP
+    authors' decoders. Its message times come from the summary's chunk indexes and the message
+    indexes beside each chunk, without reading a payload; a file without them (cut off by a crash)
+    is read once in full, up to the damage. A frame then reads only the chunks that overlap its time."""
 
-    def __init__(self, path: Path):
-        from mcap.records import Channel, Chunk, Footer, Message, Schema
-        from mcap.stream_reader import StreamReader, breakup_chunk
-
+    def __init__(self, path: Path, kind: str | None = None):
         self.path = path
         self.file = open(path, "rb")  # noqa: SIM115 - held for the drive's life; frames seek in it
         self.lock = threading.Lock()
@@ -160,6 +161,48 @@ class McapStore(MessageStore):
         self.chunks: list[tuple[int, int, int]] = []  # (file offset, first, last log time)
         self.loose: list[tuple[int, int]] = []  # messages outside chunks: (file offset, log time)
         self.stamps: dict[int, list[int]] = {}  # channel id -> log times
+        if not self.read_indexes():
+            self.read_everything()
+        self.by_topic: dict[str, list[int]] = {}
+        for channel in self.channels.values():
+            self.by_topic.setdefault(channel.topic, []).append(channel.id)
+        self.topics = {topic: self.type_of(ids[0]) for topic, ids in self.by_topic.items()}
+        self.counts = {topic: sum(len(self.stamps.get(i, [])) for i in ids) for topic, ids in self.by_topic.items()}
+        encodings = sorted({self.channels[ids[0]].message_encoding for ids in self.by_topic.values()})
+        self.kind = kind or f"MCAP, {' + '.join(encodings) or 'no'} messages"
+        self.decoders: dict[int, Any] = {}
+
+    def read_indexes(self) -> bool:
+        """Schemas, channels, chunks and message times from the summary and the message indexes; False
+        where the file has none, or they do not account for every message."""
+        from mcap.reader import make_reader
+        from mcap.stream_reader import StreamReader
+
+        try:
+            self.file.seek(0)
+            summary = make_reader(self.file).get_summary()
+        except Exception:  # no footer or summary: a file cut off by a crash
+            return False
+        if summary is None or summary.statistics is None or not summary.chunk_indexes:
+            return False
+        stamps: dict[int, list[int]] = {}
+        for chunk in summary.chunk_indexes:
+            for channel_id, offset in chunk.message_index_offsets.items():
+                self.file.seek(offset)
+                index = next(StreamReader(self.file, skip_magic=True).records)
+                stamps.setdefault(channel_id, []).extend(stamp for stamp, _ in index.records)
+        if sum(map(len, stamps.values())) != summary.statistics.message_count:
+            return False  # messages outside chunks, or an index that misses some
+        self.schemas, self.channels, self.stamps = dict(summary.schemas), dict(summary.channels), stamps
+        self.chunks = [(c.chunk_start_offset, c.message_start_time, c.message_end_time) for c in summary.chunk_indexes]
+        return True
+
+    def read_everything(self) -> None:
+        """One pass over every record: schemas, channels, chunks and message times, up to any damage."""
+        from mcap.records import Channel, Chunk, Footer, Message, Schema
+        from mcap.stream_reader import StreamReader, breakup_chunk
+
+        self.file.seek(0)
         records = StreamReader(self.file, emit_chunks=True).records
         complete, count = False, 0
         while True:
@@ -187,14 +230,6 @@ class McapStore(MessageStore):
             complete = complete or isinstance(record, Footer)
         if not complete and self.truncated is None:
             self.truncated = f"ends without its footer after {count} messages"
-        self.by_topic: dict[str, list[int]] = {}
-        for channel in self.channels.values():
-            self.by_topic.setdefault(channel.topic, []).append(channel.id)
-        self.topics = {topic: self.type_of(ids[0]) for topic, ids in self.by_topic.items()}
-        self.counts = {topic: sum(len(self.stamps.get(i, [])) for i in ids) for topic, ids in self.by_topic.items()}
-        encodings = sorted({self.channels[ids[0]].message_encoding for ids in self.by_topic.values()})
-        self.kind = f"MCAP, {' + '.join(encodings) or 'no'} messages"
-        self.decoders: dict[int, Any] = {}
 
     def type_of(self, channel_id: int) -> str:
         schema = self.schemas.get(self.channels[channel_id].schema_id)
@@ -262,9 +297,20 @@ class McapStore(MessageStore):
 
 
 def open_store(path: Path) -> MessageStore:
+    """The store of a recording: a bare .mcap, or a rosbag2 folder of one .mcap file (the usual bag of
+    MCAP storage, uncompressed), with `mcap`; other rosbag2 folders (SQLite3 storage, split or
+    file-compressed bags) and .db3 files with `rosbags`."""
     if path.is_dir() and not (path / BAG_METADATA).is_file():
         raise DatasetError(f"{path}: a folder without {BAG_METADATA}; expected a rosbag2 folder")
-    return McapStore(path) if path.suffix == ".mcap" and path.is_file() else RosbagStore(path)
+    if path.suffix == ".mcap" and path.is_file():
+        return McapStore(path)
+    storage = sorted(p for p in path.iterdir() if p.suffix in (".mcap", ".db3")) if path.is_dir() else []
+    if len(storage) == 1 and storage[0].suffix == ".mcap":
+        store = McapStore(storage[0], kind="ROS 2 bag, MCAP storage")
+        if all(schema.encoding == "ros2msg" for schema in store.schemas.values()):
+            return store
+        store.file.close()  # IDL definitions: rosbags reads them
+    return RosbagStore(path)
 
 
 class RecordingDrive(Drive):
