@@ -205,11 +205,11 @@ def evaluation_drives(
     """The folder or file `umad eval` scores (DATA/anomalous/ when it exists, else DATA) and its drives,
     none of them in DATA/normal/; each must carry anomaly labels (an AnoVox semantic camera, a
     recording's labels topic)."""
-    from umad_common.datasets.drive import find_drives
+    from umad_common.datasets.drive import anomalous_root, find_drives
 
     if not data.exists():
         raise InputError.of(f"{name} {data}", "no such folder or file", DRIVES)
-    source = data / "anomalous" if (data / "anomalous").is_dir() else data
+    source = anomalous_root(data)
     normal = find_drives(data / "normal") if (data / "normal").is_dir() else []
     paths = [d for d in find_drives(source) if d not in normal]
     if not paths:

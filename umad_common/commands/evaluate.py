@@ -170,6 +170,7 @@ def run(args: argparse.Namespace) -> int:
 
     from umad_common.dataflow.exit_codes import EXIT_INCOMPLETE, EXIT_STOPPED
     from umad_common.dataflow.launcher import Launcher
+    from umad_common.datasets.drive import anomalous_root
     from umad_common.viz.headline import SCORES, percent, weakest_drive_text
     from umad_common.viz.report import write_report
     from umad_replay.sweep import sweep_log
@@ -180,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
     if source is None:
         with timed(phases, "generation"):
             data = _builtin_benchmark(out / "benchmark", args.scenarios, args.frames)
-        source = data / "anomalous" if (data / "anomalous").is_dir() else data
+        source = anomalous_root(data)
     graph_file = out / "graph.yaml"
     graph_file.write_text(yaml.safe_dump(_eval_graph(args, source), sort_keys=False))
     graph = checked_graph(str(graph_file), args.set, local=True, runs=True)

@@ -372,7 +372,6 @@ class RecordingDrive(Drive):
             raise DatasetError(f"{where}: the camera topic {self.topic['camera']} holds no messages; expected frames")
         self.period_ns = int(np.median(np.diff(camera))) if len(camera) > 1 else 0
         self.tolerance_ns = self.period_ns // 2 if self.period_ns else np.iinfo(np.int64).max // 4
-        self.first_frame = 0
         self.frame_times = camera[::every]
         self.recorded_frames = len(camera)
         self.unmatched: dict[str, int] = {}
@@ -539,7 +538,7 @@ class RecordingDrive(Drive):
             lidar = np.zeros((0, 4), np.float32)
             if "lidar" in got:
                 lidar = cloud_points(got["lidar"], self.type["lidar"], f"{self.path}: {self.topic['lidar']}")
-        frame_id = self.first_frame + index * self.every
+        frame_id = index * self.every
         return DriveFrame(frame_id, rgb, None, None, None, anomaly, lidar, self.ego[index], None)
 
     def notes(self) -> list[str]:

@@ -427,11 +427,10 @@ class RosMessages:
         return Stamped(time_ns, "/odom", "nav_msgs/msg/Odometry", message)
 
 
-def write_rosbag2(
+def ros_messages(
     drive: Drive,
-    out: Path,
+    typestore: Typestore,
     *,
-    storage: str = "mcap",
     image_encoding: str = "rgb8",
     labels: bool = True,
     control: str | None = "carla",
@@ -443,14 +442,12 @@ def write_rosbag2(
     period_ns: int = PERIOD_NS,
     offsets_ns: dict[str, int] | None = None,
     max_frames: int | None = None,
-) -> Path:
-    """Write a drive as a rosbag2 folder (version 9, uncompressed, each type's definition embedded),
-    with rosbags' writer.
+) -> Iterator[Stamped]:
+    """A drive's ROS 2 messages (see the module docstring for the topics) in log-time order.
 
     Args:
         drive: the drive (see the module docstring).
-        out: the bag folder to create; it must not exist.
-        storage: `mcap` or `sqlite3`.
+        typestore: the rosbags typestore of the message types.
         image_encoding: the camera as a raw Image (`rgb8`, `bgr8`, `rgba8`, `bgra8`, `mono8`) or a
             CompressedImage (`jpeg`, `png`).
         labels: write `/labels`.
@@ -464,6 +461,39 @@ def write_rosbag2(
         offsets_ns: role (of ROLES) -> offset of its messages from the frame's time.
         max_frames: write only the first frames.
 
+    Raises:
+        ValueError: an option out of its choices, or timing that cannot be (see `_scheduled`).
+    """
+    source = RosMessages(
+        drive,
+        typestore,
+        image_encoding=image_encoding,
+        labels=labels,
+        control=control,
+        lidar=lidar,
+        odometry=odometry,
+        rig=rig,
+        cloud_padding=cloud_padding,
+    )
+    return _scheduled(drive, source, start_ns, period_ns, offsets_ns, max_frames)
+
+
+def write_rosbag2(
+    drive: Drive,
+    out: Path,
+    *,
+    storage: str = "mcap",
+    **layout: Any,
+) -> Path:
+    """Write a drive as a rosbag2 folder (version 9, uncompressed, each type's definition embedded),
+    with rosbags' writer.
+
+    Args:
+        drive: the drive (see the module docstring).
+        out: the bag folder to create; it must not exist.
+        storage: `mcap` or `sqlite3`.
+        layout: the topics and the timing, as `ros_messages` takes them.
+
     Returns:
         The bag folder.
 
@@ -476,18 +506,7 @@ def write_rosbag2(
 
     _check_choice("storage", storage, ("mcap", "sqlite3"))
     typestore = ros_typestore()
-    source = RosMessages(
-        drive,
-        typestore,
-        image_encoding=image_encoding,
-        labels=labels,
-        control=control,
-        lidar=lidar,
-        odometry=odometry,
-        rig=rig,
-        cloud_padding=cloud_padding,
-    )
-    messages = _scheduled(drive, source, start_ns, period_ns, offsets_ns, max_frames)
+    messages = ros_messages(drive, typestore, **layout)
     connections = {}
     with Writer(out, version=9, storage_plugin=StoragePlugin[storage.upper()]) as writer:
         for message in messages:
@@ -505,17 +524,7 @@ def write_ros2_mcap(
     out_file: Path,
     *,
     compression: str = "zstd",
-    image_encoding: str = "rgb8",
-    labels: bool = True,
-    control: str | None = "carla",
-    lidar: bool = True,
-    odometry: bool = True,
-    rig: bool = True,
-    cloud_padding: int = 0,
-    start_ns: int = START_NS,
-    period_ns: int = PERIOD_NS,
-    offsets_ns: dict[str, int] | None = None,
-    max_frames: int | None = None,
+    **layout: Any,
 ) -> Path:
     """Write a drive as one bare MCAP file (profile `ros2`, CDR messages, `ros2msg` schemas, chunks
     compressed), with mcap-ros2-support's writer: the storage file of a bag, without its metadata.yaml.
@@ -524,8 +533,7 @@ def write_ros2_mcap(
         drive: the drive (see the module docstring).
         out_file: the .mcap file to create; it must not exist.
         compression: the chunks' compression, `zstd`, `lz4` or `none`.
-        image_encoding, labels, control, lidar, odometry, rig, cloud_padding, start_ns, period_ns,
-            offsets_ns, max_frames: as for `write_rosbag2`.
+        layout: the topics and the timing, as `ros_messages` takes them.
 
     Returns:
         The file.
@@ -540,18 +548,7 @@ def write_ros2_mcap(
 
     _check_choice("compression", compression, COMPRESSIONS)
     typestore = ros_typestore()
-    source = RosMessages(
-        drive,
-        typestore,
-        image_encoding=image_encoding,
-        labels=labels,
-        control=control,
-        lidar=lidar,
-        odometry=odometry,
-        rig=rig,
-        cloud_padding=cloud_padding,
-    )
-    messages = _scheduled(drive, source, start_ns, period_ns, offsets_ns, max_frames)
+    messages = ros_messages(drive, typestore, **layout)
     schemas = {}
     with open(out_file, "xb") as stream, Writer(stream, compression=CompressionType[compression.upper()]) as writer:
         for message in messages:

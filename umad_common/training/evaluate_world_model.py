@@ -87,10 +87,11 @@ def lidar_errors(model: WorldModel, states: State, views: np.ndarray, chunk: int
     return np.concatenate(errors) if errors else np.zeros(0, np.float32)
 
 
-def unseen_normal_drives(data: Path, record: dict, topics: str | None = None) -> list[Drive]:
-    """Normal drives under DATA that the model did not train on (by the names in its record), label-free."""
+def unseen_normal_drives(data: Path, record: dict, topics: str | None = None, every: int = 1) -> list[Drive]:
+    """Normal drives under DATA that the model did not train on (by the names in its record), label-free,
+    every `every`-th frame kept."""
     trained = set(record.get("training_drives") or [])
-    drives = [label_free_drive(path, topics=topics) for path in find_drives(normal_root(Path(data)))]
+    drives = [label_free_drive(path, every, topics) for path in find_drives(normal_root(Path(data)))]
     return [drive for drive in drives if drive.name not in trained]
 
 
@@ -125,13 +126,13 @@ def evaluate_world_model(
     config = model.config
     model.eval()
     figures: dict = {}
-    normal = unseen_normal_drives(data, record, topics)[:normal_limit]
+    normal = unseen_normal_drives(data, record, topics, config.frame_step)[:normal_limit]
     squared = {k: 0.0 for k in range(horizon + 1)}  # k = 0: the reconstruction
     counts = {k: 0 for k in range(horizon + 1)}
     per_drive: dict[str, dict[str, float]] = {}
     range_errors: dict[int, list[np.ndarray]] = {k: [] for k in range(horizon + 1)}
     for unseen in normal:
-        drive = load_drive(label_free_drive(unseen.path, config.frame_step, topics), config)
+        drive = load_drive(unseen, config)
         target = drive.rgb.astype(np.float32) / 255.0
         posterior, recon = filter_drive(model, drive)
         drive_squared = {0: float(((recon - target) ** 2).sum())}
