@@ -13,7 +13,7 @@ from __future__ import annotations
 from pydantic import Field, field_validator
 
 from umad_common.dataflow import Frame, Input, JoinParams, Operator, Output, input_array
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow.api.messages import Message
 from umad_common.refine import fuse, used_weights
 
 DEFAULT_WEIGHTS = {"abs": 0.2, "mse": 0.2, "ssim": 0.2, "perceptual": 0.2, "temporal": 0.2}  # difference `metric` names

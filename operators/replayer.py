@@ -16,7 +16,7 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from umad_common.dataflow import Context, Output, Source, SourceFrame, SourceParams
-from umad_common.dataflow.log_source import recorded_frame, recorded_frames
+from umad_common.dataflow.record.log_source import recorded_frame, recorded_frames
 from umad_common.datasets.drive import (
     UMAD_LOG_PROFILE,
     DatasetError,

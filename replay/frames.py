@@ -1,6 +1,6 @@
 """Frames out of a recorded log: the messages the sweep needs, regrouped by `(run, seq)`.
 
-A log (umad_common/dataflow/mcap_log.py) holds each bus message's exact payload on the channel `umad/<graph>/<op>/<output>`:
+A log (umad_common/dataflow/record/mcap_log.py) holds each bus message's exact payload on the channel `umad/<graph>/<op>/<output>`:
 
 - `<replayer>/truth`    -> the anomaly labels (0/1/255) and the semantic tags;
 - `<world_model>/frame` -> target and reconstruction (kept as uint8, for the overlay pictures);
@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from umad_common.dataflow.mcap_log import LogError, read_log
-from umad_common.dataflow.messages import MessageError, decode
+from umad_common.dataflow.api.messages import MessageError, decode
+from umad_common.dataflow.record.mcap_log import LogError, read_log
 from umad_common.datasets.anovox import ANOMALY_TAGS
 
 METRIC_ALIASES = {"pd": "perceptual", "td": "temporal", "l1": "abs", "l2": "mse"}

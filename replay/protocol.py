@@ -16,8 +16,8 @@ from typing import Any
 import yaml
 
 from umad_common import recorded_path, resolve_path
-from umad_common.dataflow.assignments import merge_params, parse_assignment
-from umad_common.dataflow.operator import load_operator_class
+from umad_common.dataflow.api.assignments import merge_params, parse_assignment
+from umad_common.dataflow.api.operator import load_operator_class
 from umad_common.datasets.anovox import scenario_weathers
 
 LABEL_RESIZE = "nearest"  # labels are resized to the score maps' size, never the maps to the labels

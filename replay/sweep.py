@@ -47,8 +47,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from umad_common.dataflow.mcap_log import LogError, describe_loss, read_metadata, recording_outcome
-from umad_common.dataflow.replica import one_blas_thread
+from umad_common.dataflow.process.replica import one_blas_thread
+from umad_common.dataflow.record.mcap_log import LogError, describe_loss, read_metadata, recording_outcome
 from umad_common.differences.normalization import robust
 from umad_common.metrics.components import ComponentMetrics, frame_components
 from umad_common.metrics.diagnosis import Diagnosis

@@ -14,8 +14,8 @@ import time
 
 import numpy as np
 
-from umad_common.dataflow.bus import Keys, TlsConfig, ask, close_session, open_client
-from umad_common.dataflow.messages import Message, encode
+from umad_common.dataflow.api.messages import Message, encode
+from umad_common.dataflow.transport.bus import Keys, TlsConfig, ask, close_session, open_client
 
 GRAPH = "toy"
 

@@ -1,4 +1,4 @@
-"""The hub's access control as derived from a graph (`umad_common/dataflow/access.py`), and the hub's
+"""The hub's access control as derived from a graph (`umad_common/dataflow/launch/access.py`), and the hub's
 log of what Zenoh refused (`hub.RefusalLog`), on Zenoh 1.10's own trace lines. The rules at work on a
 real hub: tests/test_access_control.py."""
 
@@ -10,10 +10,10 @@ import logging
 from pathlib import Path
 
 from tests.test_graph import SCALE, SINK, SOURCE, TLS, graph
-from umad_common.dataflow.access import access_control, role_rules
-from umad_common.dataflow.graph import validate_graph
-from umad_common.dataflow.hub import RefusalLog
-from umad_common.dataflow.launcher import Launcher
+from umad_common.dataflow.api.graph import validate_graph
+from umad_common.dataflow.launch.access import access_control, role_rules
+from umad_common.dataflow.launch.launcher import Launcher
+from umad_common.dataflow.transport.hub import RefusalLog
 
 ROLES = {"hub": "launcher", "ops": "control", "rec": "observer", "op-scale": "operator:scale", "op-src": "operator:src"}
 SECURE = graph(SOURCE, SCALE, SINK, hub="tls/127.0.0.1:7447", tls=TLS, security={"roles": ROLES})

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from umad_common.dataflow import Context, Frame
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow.api.messages import Message
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import resize_nearest
 from umad_operators.accumulator import Accumulator

@@ -6,7 +6,7 @@ import pytest
 
 PROBE = """
 import json, sys
-from umad_common.dataflow.allocator import keep_freed_memory
+from umad_common.dataflow.process.allocator import keep_freed_memory
 kept = keep_freed_memory() if sys.argv[1] == "keep" else None
 block = bytes(8 << 20)
 heap = [line.split()[0] for line in open("/proc/self/maps") if line.rstrip().endswith("[heap]")]

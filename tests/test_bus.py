@@ -3,7 +3,7 @@
 import queue
 import time
 
-from umad_common.dataflow.bus import close_session, open_client, open_hub
+from umad_common.dataflow.transport.bus import close_session, open_client, open_hub
 
 
 def wait_for(condition, timeout_s: float = 10.0) -> bool:

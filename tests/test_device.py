@@ -17,7 +17,7 @@ from umad_common import ASSETS
 from umad_common.commands import train_features, train_mnad, train_segmenter, train_world_model
 from umad_common.commands.common import resolve_device_or_exit
 from umad_common.dataflow import Context, Frame
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow.api.messages import Message
 from umad_common.differences import MetricOptions, build_metric
 from umad_common.models.device import resolve_device
 from umad_common.models.mnad import Mnad, MnadConfig, load_mnad, save_mnad, to_input

@@ -16,7 +16,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 from umad_common.dataflow import Context, Frame
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow.api.messages import Message
 from umad_common.differences import (
     AbsDifference,
     CalibrationError,

@@ -20,10 +20,10 @@ from mcap.reader import make_reader
 
 from umad_common import DEFAULT_GRAPH, LIVE_GRAPH
 from umad_common.dataflow import Frame
-from umad_common.dataflow.graph import load_graph
-from umad_common.dataflow.mcap_log import McapRecorder, read_log
-from umad_common.dataflow.messages import Message, encode
-from umad_common.dataflow.recording import mask_sources
+from umad_common.dataflow.api.graph import load_graph
+from umad_common.dataflow.api.messages import Message, encode
+from umad_common.dataflow.record.mcap_log import McapRecorder, read_log
+from umad_common.dataflow.record.recorder import mask_sources
 from umad_common.datasets.synthetic.generator import generate_benchmark
 from umad_common.datasets.synthetic.scenario import FRAME_DT, SyntheticScenario
 from umad_common.refine import mask_scores, resize_nearest

@@ -17,9 +17,9 @@ import yaml
 import zenoh
 
 from tests.conftest import REPO, DrainedUmad
-from umad_common.dataflow.bus import Keys, open_client
-from umad_common.dataflow.graph import load_graph
-from umad_common.dataflow.messages import Message, encode
+from umad_common.dataflow.api.graph import load_graph
+from umad_common.dataflow.api.messages import Message, encode
+from umad_common.dataflow.transport.bus import Keys, open_client
 
 pytestmark = pytest.mark.slow
 N_PAYLOADS = 10_000

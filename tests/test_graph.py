@@ -5,7 +5,7 @@ import pytest
 import yaml
 
 from tests.conftest import REPO, run_umad, umad_env
-from umad_common.dataflow.graph import GraphError, load_graph, validate_graph
+from umad_common.dataflow.api.graph import GraphError, load_graph, validate_graph
 
 SOURCE = {"id": "src", "uses": "tests.toy_ops:CounterSource"}
 SCALE = {"id": "scale", "uses": "tests.toy_ops:Scale", "inputs": {"x": "src/value"}}
@@ -71,7 +71,7 @@ def test_replicas_below_one():
 
 
 def test_shared_memory_pool_is_checked_and_reaches_the_zenoh_config():
-    from umad_common.dataflow.bus import zenoh_config
+    from umad_common.dataflow.transport.bus import zenoh_config
 
     assert "shm_pool_mib" in problems(graph(SOURCE, shm_pool_mib=0))
     assert validate_graph(graph(SOURCE, shm_pool_mib=4)).spec.shm_pool_mib == 4
@@ -213,7 +213,7 @@ def test_checking_the_default_graph_imports_neither_torch_nor_scikit_learn():
     """Every replica loads the whole graph to check its wiring: what an operator module imports at
     its top, all 14 replicas pay at start-up (torch and scikit-learn were 3 s of CPU each)."""
     probe = (
-        "import sys; from umad_common.dataflow.graph import load_graph; load_graph('graph.yaml'); "
+        "import sys; from umad_common.dataflow.api.graph import load_graph; load_graph('graph.yaml'); "
         "print(sorted(m for m in ('torch', 'sklearn') if m in sys.modules))"
     )
     done = subprocess.run(

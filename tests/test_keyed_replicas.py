@@ -23,13 +23,14 @@ import yaml
 
 from tests.conftest import free_port, run_umad, start_umad
 from umad_common import DEFAULT_GRAPH
-from umad_common.dataflow.bus import Keys
-from umad_common.dataflow.delivery import Membership, Stats
-from umad_common.dataflow.delivery_ordered import RunOwners, rendezvous_score
-from umad_common.dataflow.graph import validate_graph
-from umad_common.dataflow.messages import Message, decode, encode
-from umad_common.dataflow.service_messages import IgnoredMessages, encode_ack
-from umad_common.dataflow.source_driver import SourceDriver
+from umad_common.dataflow.api.graph import validate_graph
+from umad_common.dataflow.api.messages import Message, decode, encode
+from umad_common.dataflow.delivery.joiner import Membership
+from umad_common.dataflow.delivery.ordered import RunOwners, rendezvous_score
+from umad_common.dataflow.delivery.service_messages import IgnoredMessages, encode_ack
+from umad_common.dataflow.delivery.stats import Stats
+from umad_common.dataflow.process.source_driver import SourceDriver
+from umad_common.dataflow.transport.bus import Keys
 
 RUNS = [f"run{r}" for r in range(4)]
 

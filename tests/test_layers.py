@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import free_port
-from umad_common.dataflow.plugins import RENAMED_PACKAGES
+from umad_common.dataflow.api.plugins import RENAMED_PACKAGES
 
 REPO = Path(__file__).resolve().parents[1]
 

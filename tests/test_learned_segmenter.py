@@ -117,7 +117,7 @@ def test_geometry_learned_is_geometry_with_the_learned_rest(trained):
     problems = Segmenter.wiring_problems(Segmenter.Params(method="geometry_learned"), {"frame"})
     assert problems == ["method 'geometry_learned' needs input 'lidar' (e.g. replayer/lidar), which is not wired"]
     method = build_segmenter("geometry_learned", {"rest_options": {"weights": str(out)}, "no_lidar": "rest"}, Context())
-    from umad_common.dataflow.messages import Message
+    from umad_common.dataflow.api.messages import Message
 
     frame = scene_frame(0, with_truth=False)
     frame.inputs["lidar"] = Message("drive", 0, arrays={"points": np.zeros((0, 4), np.float32)})
@@ -150,10 +150,10 @@ def test_readme_recipe_rebuilds_the_shipped_segment_net():
 def test_switching_to_a_method_whose_input_is_not_wired_is_refused_with_the_reason():
     import zenoh
 
-    from umad_common.dataflow.bus import zenoh_config
-    from umad_common.dataflow.control import apply_command
-    from umad_common.dataflow.graph import validate_graph
-    from umad_common.dataflow.runtime import OperatorRuntime
+    from umad_common.dataflow.api.graph import validate_graph
+    from umad_common.dataflow.process.control import apply_command
+    from umad_common.dataflow.process.runtime import OperatorRuntime
+    from umad_common.dataflow.transport.bus import zenoh_config
 
     graph = {
         "name": "switch",

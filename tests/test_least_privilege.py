@@ -23,8 +23,8 @@ import yaml
 from tests.conftest import REPO, DrainedUmad, free_port, run_umad, umad_env
 from tests.test_distributed import frames_done_by, in_namespace, remote_worker, secured
 from tests.test_runtime_e2e import assert_exactly_once, sink_lines
-from umad_common.dataflow.access import role_rules
-from umad_common.dataflow.graph import load_graph
+from umad_common.dataflow.api.graph import load_graph
+from umad_common.dataflow.launch.access import role_rules
 
 pytestmark = pytest.mark.slow
 

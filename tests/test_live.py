@@ -11,8 +11,8 @@ from pydantic import ValidationError
 from tests.conftest import run_umad
 from umad_common import LIVE_GRAPH
 from umad_common.dataflow import Frame
-from umad_common.dataflow.graph import load_graph
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow.api.graph import load_graph
+from umad_common.dataflow.api.messages import Message
 from umad_common.viz.foxglove import views
 from umad_operators.frame_result import FrameResult, frame_result, mask_boxes
 

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import zenoh
 
-from umad_common.dataflow.bus import zenoh_config
-from umad_common.dataflow.graph import validate_graph
-from umad_common.dataflow.messages import Message, decode, encode
-from umad_common.dataflow.runtime import OperatorRuntime, Received
+from umad_common.dataflow.api.graph import validate_graph
+from umad_common.dataflow.api.messages import Message, decode, encode
+from umad_common.dataflow.process.runtime import OperatorRuntime, Received
+from umad_common.dataflow.transport.bus import zenoh_config
 
 
 def graph(log: str) -> dict:

@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from umad_common.dataflow.messages import ALLOWED_DTYPES, IN_PLACE_FROM, Message, MessageError, decode, encode
+from umad_common.dataflow.api.messages import ALLOWED_DTYPES, IN_PLACE_FROM, Message, MessageError, decode, encode
 
 dtypes = st.sampled_from(sorted(ALLOWED_DTYPES)).map(np.dtype)
 arrays = dtypes.flatmap(lambda dt: hnp.arrays(dt, hnp.array_shapes(min_dims=0, max_dims=4, max_side=5)))

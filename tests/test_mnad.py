@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from umad_common.dataflow import Context, Frame
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow.api.messages import Message
 from umad_common.models.mnad import Mnad, MnadConfig, load_mnad, save_mnad, to_input
 from umad_common.models.weights import WeightsError
 from umad_common.training.train_mnad import MnadTrainingConfig, train_mnad

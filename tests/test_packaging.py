@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 
 from umad_common import ASSETS, DEFAULT_GRAPH, LIVE_GRAPH, SAM_ENV_SCRIPT, resolve_path, shipped_file
-from umad_common.dataflow import plugins
-from umad_common.dataflow.graph import graph_base_dir, is_builtin_graph
-from umad_common.dataflow.operator import UnknownOperatorError, load_operator_class
+from umad_common.dataflow.api import plugins
+from umad_common.dataflow.api.graph import graph_base_dir, is_builtin_graph
+from umad_common.dataflow.api.operator import UnknownOperatorError, load_operator_class
 from umad_operators.fusion import Fusion
 
 REPO = Path(__file__).resolve().parents[1]

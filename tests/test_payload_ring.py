@@ -20,10 +20,10 @@ import zenoh
 from tests.conftest import REPO, run_umad, start_umad, umad_env
 from tests.test_distributed import frames_done_by
 from tests.test_runtime_e2e import assert_exactly_once, sink_lines, toy_graph
-from umad_common.dataflow.bus import open_client, open_hub
-from umad_common.dataflow.mcap_log import read_log
-from umad_common.dataflow.messages import Message, MessageError, decode, encode
-from umad_common.dataflow.payload_ring import (
+from umad_common.dataflow.api.messages import Message, MessageError, decode, encode
+from umad_common.dataflow.record.mcap_log import read_log
+from umad_common.dataflow.transport.bus import open_client, open_hub
+from umad_common.dataflow.transport.payload_ring import (
     INLINE_BELOW,
     RING_DIR,
     PayloadReader,
@@ -33,7 +33,7 @@ from umad_common.dataflow.payload_ring import (
     on_this_host,
     remove_stale_rings,
 )
-from umad_common.dataflow.shm_payloads import ZenohShmPayloads, payload_plane
+from umad_common.dataflow.transport.shm_payloads import ZenohShmPayloads, payload_plane
 
 
 def payload(size: int, fill: int = 0) -> bytes:
@@ -284,7 +284,7 @@ def test_without_room_for_a_zenoh_pool_payloads_go_as_they_are(monkeypatch):
     def no_room(size):
         raise zenoh.ZError("no space left on device")
 
-    monkeypatch.setattr("umad_common.dataflow.shm_payloads.ShmProvider.default_backend", no_room)
+    monkeypatch.setattr("umad_common.dataflow.transport.shm_payloads.ShmProvider.default_backend", no_room)
     shm = ZenohShmPayloads(pool_mib=64)
     large = payload(1 << 20)
     assert shm.pack(large) is large and "no 64 MiB pool" in shm.disabled_because
@@ -307,8 +307,8 @@ def test_a_ring_left_to_the_launcher_still_gives_its_payloads_after_its_publishe
 
 
 def test_the_launcher_sweeps_a_replicas_ring_only_after_a_grace(tmp_path, hub_endpoint, monkeypatch):
-    from umad_common.dataflow import launcher
-    from umad_common.dataflow.graph import load_graph
+    from umad_common.dataflow.api.graph import load_graph
+    from umad_common.dataflow.launch import launcher
 
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     pid = int(dead.stdout)

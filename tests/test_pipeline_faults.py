@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from tests.conftest import REPO, DrainedUmad, free_port
-from umad_common.dataflow.bus import open_client
+from umad_common.dataflow.transport.bus import open_client
 
 pytestmark = pytest.mark.slow
 FRAMES = 16
@@ -100,7 +100,7 @@ def test_a_killed_keyed_world_model_replica_leaves_the_metrics_of_one_replica(tm
     """Two drives side by side on two keyed world model replicas; the replica that owns the first
     drive is killed mid-drive, a survivor takes the drive over from its first frame: the metrics
     are those of the default graph's one world model."""
-    from umad_common.dataflow.delivery_ordered import rendezvous_score
+    from umad_common.dataflow.delivery.ordered import rendezvous_score
     from umad_common.datasets.synthetic.generator import generate_benchmark
 
     generate_benchmark(tmp_path / "data", 0, 2, FRAMES, 7, (192, 128))

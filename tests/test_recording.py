@@ -18,13 +18,13 @@ import yaml
 
 from tests.conftest import REPO, UMAD, free_port, umad_env
 from tests.test_runtime_e2e import toy_graph
-from umad_common.dataflow.bus import RECORDER, Keys, open_client, open_hub
-from umad_common.dataflow.exit_codes import EXIT_INCOMPLETE
-from umad_common.dataflow.graph import load_graph
-from umad_common.dataflow.mcap_log import describe_loss, read_log, read_metadata, recording_outcome
-from umad_common.dataflow.messages import Message, decode, encode
-from umad_common.dataflow.payload_ring import PayloadRing
-from umad_common.dataflow.recording import Recording
+from umad_common.dataflow.api.exit_codes import EXIT_INCOMPLETE
+from umad_common.dataflow.api.graph import load_graph
+from umad_common.dataflow.api.messages import Message, decode, encode
+from umad_common.dataflow.record.mcap_log import describe_loss, read_log, read_metadata, recording_outcome
+from umad_common.dataflow.record.recorder import Recording
+from umad_common.dataflow.transport.bus import RECORDER, Keys, open_client, open_hub
+from umad_common.dataflow.transport.payload_ring import PayloadRing
 
 FRAMES = 60  # per drive: at 60 a recorder without flow control lost 55 of 122 camera frames this way
 NICE = 10  # the graph's priority below the hogs'

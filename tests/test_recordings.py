@@ -289,7 +289,7 @@ def test_a_recording_cut_off_by_a_crash_is_refused_or_read_up_to_the_damage(anom
 
 
 def test_the_recorder_logs_a_recordings_frames_at_the_recordings_own_time():
-    from umad_common.dataflow.mcap_log import log_time_of
+    from umad_common.dataflow.record.mcap_log import log_time_of
 
     assert log_time_of(1_700_000_000 * 10**9 + 5) == 1_700_000_000 * 10**9 + 5
     assert log_time_of(300_000_000) > 1_700_000_000 * 10**9  # AnoVox stamps from 0: the time of writing
@@ -383,7 +383,7 @@ def test_launch_runs_on_a_bag_without_labels(anomalous, tmp_path):
         "--set", "replayer.pacing=lossless", "--hub", hub, "--record", str(tmp_path / "run.mcap"), timeout=300,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    from umad_common.dataflow.mcap_log import read_log
+    from umad_common.dataflow.record.mcap_log import read_log
 
     stamps = {m.publish_time for m in read_log(tmp_path / "run.mcap") if m.topic.endswith("/replayer/camera")}
     assert stamps == {1_700_000_000 * 10**9 + i * 100_000_000 for i in range(6)}  # the bag's own time

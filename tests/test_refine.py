@@ -9,7 +9,7 @@ import pytest
 from pydantic import ValidationError
 
 from umad_common.dataflow import Frame
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow.api.messages import Message
 from umad_common.refine import fuse, mask_scores, refine, resize_nearest
 from umad_operators.fusion import Fusion
 from umad_operators.mask_refiner import MaskRefiner

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from umad_common.dataflow.messages import Message, decode, encode
-from umad_common.dataflow.operator import Context, load_operator_class
+from umad_common.dataflow.api.messages import Message, decode, encode
+from umad_common.dataflow.api.operator import Context, load_operator_class
 from umad_common.datasets.anovox import AnoVoxScenario, write_benchmark_scenario
 from umad_common.datasets.drive import DatasetError, find_drives
 from umad_common.datasets.synthetic.generator import generate_benchmark

@@ -16,9 +16,9 @@ import yaml
 import zenoh
 
 from tests.conftest import DrainedUmad, run_umad, start_umad
-from umad_common.dataflow.bus import open_client
-from umad_common.dataflow.mcap_log import LogError, read_log
-from umad_common.dataflow.messages import decode
+from umad_common.dataflow.api.messages import decode
+from umad_common.dataflow.record.mcap_log import LogError, read_log
+from umad_common.dataflow.transport.bus import open_client
 
 pytestmark = pytest.mark.slow
 
@@ -103,7 +103,7 @@ def test_a_graph_whose_hub_endpoint_is_taken_refuses_to_start(tmp_path, hub_endp
     """Another hub on the endpoint (a graph that did not stop): our hub could not listen there and our
     replicas would join that graph's hub, mixing frames of two graphs. `umad launch` says so before it
     starts anything (the launcher's own check, which asks the bus, stays behind it)."""
-    from umad_common.dataflow.bus import open_hub
+    from umad_common.dataflow.transport.bus import open_hub
 
     other = open_hub(hub_endpoint)
     try:
@@ -379,8 +379,8 @@ def test_ctrl_c_stops_everything_and_leaves_no_process_or_segment(tmp_path, hub_
 def test_a_stopping_graph_signals_consumers_before_their_producers(tmp_path, hub_endpoint):
     """A producer that leaves first would let a consumer complete a frame in flight without its
     output (what a producer stopped by `umad op stop` means); consumers must stop first."""
-    from umad_common.dataflow.graph import load_graph
-    from umad_common.dataflow.launcher import Launcher
+    from umad_common.dataflow.api.graph import load_graph
+    from umad_common.dataflow.launch.launcher import Launcher
 
     graph = toy_graph(tmp_path, hub_endpoint)
     launcher = Launcher(load_graph(graph), graph, quiet=True)
@@ -418,7 +418,7 @@ def test_operator_that_cannot_start_fails_the_graph_without_restarts(tmp_path, h
 def test_hub_restart_is_survived_by_reconnecting_clients(tmp_path, hub_endpoint):
     graph = toy_graph(tmp_path, hub_endpoint, frames=60, delay=0.03)
     proc = start_umad("launch", str(graph))
-    hub_pid = pid_once_sinking(tmp_path, f"umad_common.dataflow.hub --listen {hub_endpoint}")
+    hub_pid = pid_once_sinking(tmp_path, f"umad_common.dataflow.transport.hub --listen {hub_endpoint}")
     assert hub_pid
     survives_sigkill(proc, hub_pid, "[hub] exited with -9; restarting", tmp_path, timeout=240)
 

@@ -25,7 +25,7 @@ END_TO_END = textwrap.dedent(
     import torch
     from segment_anything import sam_model_registry
     from umad_operators.segmenter import Segmenter
-    from umad_common.dataflow.messages import Message
+    from umad_common.dataflow.api.messages import Message
     from umad_common.dataflow import Frame
 
     torch.set_num_threads(1)

@@ -14,7 +14,7 @@ import pytest
 from pydantic import ValidationError
 
 from umad_common.dataflow import Context, Frame
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow.api.messages import Message
 from umad_common.refine import resize_nearest
 from umad_common.segmentation import SEGMENTERS, connected_regions, labels_to_masks
 from umad_operators.segmenter import Segmenter

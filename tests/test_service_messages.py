@@ -1,4 +1,4 @@
-"""Acks, goodbyes and resend requests (`umad_common/dataflow/service_messages.py`): each is taken only
+"""Acks, goodbyes and resend requests (`umad_common/dataflow/delivery/service_messages.py`): each is taken only
 from the sender its key names, a source takes nothing but a resend on its resend key, and what is
 ignored is counted and logged once per key. On a real hub with intruders: tests/test_least_privilege.py."""
 
@@ -12,10 +12,8 @@ import msgpack
 import pytest
 
 from tests.test_keyed_replicas import AckingHost
-from umad_common.dataflow.bus import Keys
-from umad_common.dataflow.delivery import Stats
-from umad_common.dataflow.graph import validate_graph
-from umad_common.dataflow.service_messages import (
+from umad_common.dataflow.api.graph import validate_graph
+from umad_common.dataflow.delivery.service_messages import (
     Ack,
     IgnoredMessages,
     ServiceMessageError,
@@ -26,7 +24,9 @@ from umad_common.dataflow.service_messages import (
     read_goodbye,
     read_resend,
 )
-from umad_common.dataflow.source_driver import SourceDriver
+from umad_common.dataflow.delivery.stats import Stats
+from umad_common.dataflow.process.source_driver import SourceDriver
+from umad_common.dataflow.transport.bus import Keys
 
 KEYS = Keys("g")
 

@@ -13,10 +13,11 @@ import pytest
 
 from umad_common import DEFAULT_GRAPH
 from umad_common.benchmarks.pipeline import joined_inputs, stage_times, work_with_every_core_busy
-from umad_common.dataflow.delivery import FrameJoiner, Stats
-from umad_common.dataflow.graph import load_graph
-from umad_common.dataflow.launcher_report import summary_table
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow.api.graph import load_graph
+from umad_common.dataflow.api.messages import Message
+from umad_common.dataflow.delivery.joiner import FrameJoiner
+from umad_common.dataflow.delivery.stats import Stats
+from umad_common.dataflow.launch.report import summary_table
 
 
 def test_stats_turn_sums_into_means_per_frame_and_per_message():
@@ -32,7 +33,7 @@ def test_stats_turn_sums_into_means_per_frame_and_per_message():
 
 def test_joiner_sums_the_wait_from_a_frames_first_input_to_its_last(monkeypatch):
     clock = iter([10.0, 10.25, 10.5])
-    monkeypatch.setattr("umad_common.dataflow.delivery.time.monotonic", lambda: next(clock))
+    monkeypatch.setattr("umad_common.dataflow.delivery.joiner.time.monotonic", lambda: next(clock))
     joiner = FrameJoiner(["a", "b"], [])
     joiner.add("a", "p", Message("run", 0))  # first seen at 10.0
     joiner.add("b", "q", Message("run", 0))
@@ -79,7 +80,7 @@ def test_a_replica_process_runs_numpy_blas_on_one_thread():
     """BLAS threads spin after each call: a replica keeps one (run_operator calls one_blas_thread first)."""
     probe = (
         "import json, numpy, threadpoolctl\n"
-        "from umad_common.dataflow.replica import one_blas_thread\n"
+        "from umad_common.dataflow.process.replica import one_blas_thread\n"
         "blas = lambda: [p['num_threads'] for p in threadpoolctl.threadpool_info() if p['user_api'] == 'blas']\n"
         "before = blas()\n"
         "one_blas_thread()\n"

@@ -16,7 +16,7 @@ from sklearn.metrics import average_precision_score, roc_auc_score
 from umad_common.cli import build_parser
 from umad_common.cli import main as umad_main
 from umad_common.commands.evaluate import every_and_layout
-from umad_common.dataflow.messages import Message, encode
+from umad_common.dataflow.api.messages import Message, encode
 from umad_common.differences import robust
 from umad_common.metrics.components import component_metrics
 from umad_common.metrics.pixel import PixelMetrics

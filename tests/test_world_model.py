@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from umad_common.dataflow import Frame
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow.api.messages import Message
 from umad_common.models.weights import WeightsError
 from umad_common.models.world_model import (
     MotionWarp,

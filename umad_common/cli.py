@@ -15,8 +15,8 @@ import sys
 from importlib import metadata
 
 from umad_common.commands.checks import InputError
-from umad_common.dataflow.allocator import keep_freed_memory
-from umad_common.dataflow.exit_codes import EXIT_BAD_INPUT, EXIT_STOPPED
+from umad_common.dataflow.api.exit_codes import EXIT_BAD_INPUT, EXIT_STOPPED
+from umad_common.dataflow.process.allocator import keep_freed_memory
 
 COMMANDS: dict[tuple[str, ...], tuple[str, str, str]] = {  # words -> (module, what it does, one example)
     ("launch",): (

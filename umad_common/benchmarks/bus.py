@@ -45,11 +45,11 @@ from pydantic import Field
 
 from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.dataflow import Frame, Input, Operator, Output, Source, SourceFrame, SourceParams
-from umad_common.dataflow.allocator import keep_freed_memory
-from umad_common.dataflow.bus import open_client, open_hub
-from umad_common.dataflow.certificates import HUB, bundle_paths, make_certificates, operator_identity
-from umad_common.dataflow.launcher import OPERATOR_NICENESS
-from umad_common.dataflow.messages import Message, decode, encode
+from umad_common.dataflow.api.messages import Message, decode, encode
+from umad_common.dataflow.launch.launcher import OPERATOR_NICENESS
+from umad_common.dataflow.process.allocator import keep_freed_memory
+from umad_common.dataflow.transport.bus import open_client, open_hub
+from umad_common.dataflow.transport.certificates import HUB, bundle_paths, make_certificates, operator_identity
 
 
 class BlobSource(Source):

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from umad_common import DEFAULT_GRAPH
-from umad_common.dataflow.graph import load_graph
+from umad_common.dataflow.api.graph import load_graph
 
 READY_TIMEOUT_S = 300.0  # the default graph's operators load their models on a busy machine
 QUERY_TIMEOUT_S = 30.0
@@ -49,7 +49,7 @@ def bench_control(
 def _measure(graph: Path, hub: str, sets: list[str], rounds: int, busy: bool) -> dict:
     """Launch `graph`, wait until every operator is live (and, `busy`, frames flow), then time
     `rounds` commands; rounds stop early when a busy graph runs out of frames."""
-    from umad_common.dataflow.bus import Keys, ask, open_client
+    from umad_common.dataflow.transport.bus import Keys, ask, open_client
 
     spec = load_graph(graph).spec
     launch = [sys.executable, "-m", "umad_common.cli", "launch", str(graph), "--hub", hub]
@@ -104,7 +104,7 @@ def _measure(graph: Path, hub: str, sets: list[str], rounds: int, busy: bool) ->
 
 def _wait_ready(session, keys, wanted: set[str], busy: bool, fusion_in: list[int], proc: subprocess.Popen) -> None:
     """Every operator holds its liveliness token and, for the busy graph, fusion has seen frames."""
-    from umad_common.dataflow.bus import live_replicas
+    from umad_common.dataflow.transport.bus import live_replicas
 
     deadline = time.monotonic() + READY_TIMEOUT_S
     while time.monotonic() < deadline and proc.poll() is None:

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from umad_common.dataflow.launcher import OPERATOR_NICENESS
+from umad_common.dataflow.launch.launcher import OPERATOR_NICENESS
 
 START_TIMEOUT_S = 120.0  # dora's own start-up (daemon, node handshakes) on a busy machine
 PROBE = -1  # the seq of the frames the source sends until the chain answers

@@ -12,8 +12,8 @@ import yaml
 def run_bench_graph(graph_data: dict, timeout_note: str = "", record: Path | None = None) -> dict:
     """Launch `graph_data` quietly (recorded to `record` if given); returns the source's frames/s
     and send-to-ack latency."""
-    from umad_common.dataflow.graph import load_graph
-    from umad_common.dataflow.launcher import Launcher
+    from umad_common.dataflow.api.graph import load_graph
+    from umad_common.dataflow.launch.launcher import Launcher
 
     path = Path(tempfile.mkdtemp(prefix="umad-bench-")) / "graph.yaml"
     path.write_text(yaml.safe_dump(graph_data, sort_keys=False))

@@ -77,8 +77,8 @@ class ArrivalListener:
         self._thread.start()
 
     def _connect(self) -> None:
-        from umad_common.dataflow.bus import Keys, open_client
-        from umad_common.dataflow.payload_ring import PayloadReader
+        from umad_common.dataflow.transport.bus import Keys, open_client
+        from umad_common.dataflow.transport.payload_ring import PayloadReader
 
         self.reader = PayloadReader()
         self.session = open_client(self.hub, cancel=self.stop)
@@ -91,7 +91,7 @@ class ArrivalListener:
         ]
 
     def _callback(self, name: str):
-        from umad_common.dataflow.messages import decode
+        from umad_common.dataflow.api.messages import decode
 
         def on_sample(sample) -> None:
             arrived = time.monotonic()
@@ -112,7 +112,7 @@ class ArrivalListener:
         self.stop.set()
         self._thread.join(timeout=30)
         if self.session is not None:
-            from umad_common.dataflow.bus import close_session
+            from umad_common.dataflow.transport.bus import close_session
 
             close_session(self.session)
             self.reader.close()

@@ -10,7 +10,7 @@ a bound measured only before the graph moved the ratio by as much (both passes a
 so the drift shows). Then the graph itself, as processes on a hub: frames/s (frames over the
 source's first-send-to-last-ack time, start-up excluded), end-to-end latency from the replayer's
 send to the accumulator's ack (p50/p99), their ratio to the bound, and per operator where a frame's
-time went (the stats every replica publishes, see `umad_common.dataflow.delivery.Stats`), so the operator to
+time went (the stats every replica publishes, see `umad_common.dataflow.delivery.joiner.Stats`), so the operator to
 replicate or move to another machine is visible. `operators_cpu_ms_per_frame` sets the
 operators' own CPU per frame in the graph next to the in-process passes'.
 
@@ -41,11 +41,11 @@ import yaml
 from umad_common import DEFAULT_GRAPH
 from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.dataflow import Context, Frame, Operator, Source
-from umad_common.dataflow.allocator import keep_freed_memory
-from umad_common.dataflow.graph import Graph, validate_graph
-from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import delivered
-from umad_common.dataflow.replica import one_blas_thread
+from umad_common.dataflow.api.graph import Graph, validate_graph
+from umad_common.dataflow.api.messages import Message
+from umad_common.dataflow.api.operator import delivered
+from umad_common.dataflow.process.allocator import keep_freed_memory
+from umad_common.dataflow.process.replica import one_blas_thread
 
 STAGE_FIELDS = ("cpu_ms", "runtime_cpu_ms", "wait_ms", "queue_ms", "transport_ms", "p50_ms")
 

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from umad_common.dataflow import SourceFrame
-from umad_common.dataflow.operator import frame_of
+from umad_common.dataflow.api.operator import frame_of
 
 WARMUP_FRAMES = 4
 

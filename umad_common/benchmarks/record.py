@@ -1,7 +1,7 @@
 """`umad bench record`: what the recording's guarantee costs, the default graph with and without
 `--record`, side by side in one run.
 
-The recorder acks every frame it has written (`umad_common/dataflow/recording.py`), so a recorded run goes
+The recorder acks every frame it has written (`umad_common/dataflow/record/recorder.py`), so a recorded run goes
 no faster than its log is written. The same generated drive runs through the default graph
 alternately without and with a recording (`pairs` times each, alternating, so a machine whose speed
 drifts moves both sides alike); frames/s is the median per side, and `fps_ratio_recorded` their
@@ -20,8 +20,8 @@ import yaml
 
 from umad_common import DEFAULT_GRAPH
 from umad_common.benchmarks.graphs import run_bench_graph
-from umad_common.dataflow.mcap_log import read_log, recording_outcome
-from umad_common.dataflow.messages import decode
+from umad_common.dataflow.api.messages import decode
+from umad_common.dataflow.record.mcap_log import read_log, recording_outcome
 
 
 def bench_record(

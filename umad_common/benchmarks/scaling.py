@@ -27,7 +27,7 @@ from pydantic import Field
 from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.benchmarks.pipeline import work_per_frame, work_with_every_core_busy
 from umad_common.dataflow import Output, Source, SourceFrame, SourceParams
-from umad_common.dataflow.graph import validate_graph
+from umad_common.dataflow.api.graph import validate_graph
 
 
 class WorldModelFrames(Source):
@@ -150,7 +150,7 @@ def bench_world_model_scaling(drives: int = 4, frames: int = 40, hub: str = "tcp
     of its name), so the ratio is bound by how evenly the drives fall (`drives_per_replica_with_2`;
     with 4 drives, 2 and 2 three times in eight). Next to it, the machine's own ratio as in
     `compare_replicas`: the same chain in one process, alone and in two processes at once."""
-    from umad_common.dataflow.delivery_ordered import rendezvous_score
+    from umad_common.dataflow.delivery.ordered import rendezvous_score
     from umad_common.datasets.synthetic.generator import generate_benchmark
 
     data = Path(tempfile.mkdtemp(prefix="umad-bench-wm-")) / "drives"

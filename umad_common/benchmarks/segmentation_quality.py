@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from umad_common.dataflow import Frame, Output
-from umad_common.dataflow.operator import frame_of
+from umad_common.dataflow.api.operator import frame_of
 from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import fuse, refine, resize_nearest
 from umad_common.segmentation import connected_regions

@@ -81,7 +81,7 @@ def calibration_drives(data: Path, record: dict, topics: str | None = None) -> t
 def sensor_frames(scenario, limit: int) -> Iterator:
     """The first `limit` frames of a label-free drive (`label_free_drive`: its reader cannot open a
     label) as the replayer sends them to the world model: camera, lidar (with the drive's rig), ego, route."""
-    from umad_common.dataflow.operator import frame_of
+    from umad_common.dataflow.api.operator import frame_of
     from umad_operators.replayer import frame_outputs
     from umad_operators.world_model import WorldModelPredictor
 

@@ -19,7 +19,7 @@ import yaml
 
 from umad_common.commands.checks import InputError, checked_graph
 from umad_common.commands.common import add_graph_argument
-from umad_common.dataflow.certificates import (
+from umad_common.dataflow.transport.certificates import (
     CONTROL,
     HUB,
     OBSERVER,

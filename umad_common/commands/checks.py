@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from umad_common.dataflow.graph import Graph
+    from umad_common.dataflow.api.graph import Graph
     from umad_common.datasets.drive import Drive
 
 DRIVES = (
@@ -295,8 +295,8 @@ def checked_graph(
     also its interpreters and TLS files; `runs`: it is about to run, so also the files and folders its
     operators read at start (the data, the models). `data`: the graph's contents, not yet written to
     `path`. InputError otherwise: one line per problem."""
-    from umad_common.dataflow.assignments import GraphError, parse_sets
-    from umad_common.dataflow.graph import load_graph, missing_input_files, missing_local_files, validate_graph
+    from umad_common.dataflow.api.assignments import GraphError, parse_sets
+    from umad_common.dataflow.api.graph import load_graph, missing_input_files, missing_local_files, validate_graph
 
     try:
         graph = load_graph(path) if data is None else validate_graph(data, Path(path))

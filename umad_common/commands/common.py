@@ -15,7 +15,7 @@ from typing import Any
 
 from umad_common import DEFAULT_GRAPH
 from umad_common.commands.checks import existing_file
-from umad_common.dataflow.certificates import CONTROL, add_certificate_arguments
+from umad_common.dataflow.transport.certificates import CONTROL, add_certificate_arguments
 
 CONNECT_TIMEOUT_S = 10.0  # how long a command waits for the hub's answer once connected
 ANSWER_TIMEOUT_S = 30.0  # a replica answers between two frames; only a hung one takes this long
@@ -64,12 +64,12 @@ def connect_to_running_graph(args: argparse.Namespace) -> RunningGraph | None:
     """The graph running on the hub (`--connect`, else the `--graph` file's hub, else the default
     one), or None after saying why not: no hub there, it refused our certificate (a TLS graph: the
     `control` one of its `tls.certs`, or `--cert/--key`), no graph on it, or several and none named."""
-    from umad_common.dataflow.bus import DEFAULT_HUB, HubJoinError, Keys, ask, open_client
+    from umad_common.dataflow.transport.bus import DEFAULT_HUB, HubJoinError, Keys, ask, open_client
 
     name, hub, tls = None, DEFAULT_HUB, None
     if args.graph:
         existing_file(Path(args.graph), "--graph", "the graph file of the running graph")
-        from umad_common.dataflow.graph import graph_address  # reads the file; imports no operator
+        from umad_common.dataflow.api.graph import graph_address  # reads the file; imports no operator
 
         name, hub, tls = graph_address(args.graph, CONTROL, args.cert, args.key)
     hub = args.connect or hub

@@ -168,8 +168,8 @@ def run(args: argparse.Namespace) -> int:
     args.every, layout = every_and_layout(args.protocol, args.every)
     source = check_inputs(args)
 
-    from umad_common.dataflow.exit_codes import EXIT_INCOMPLETE, EXIT_STOPPED
-    from umad_common.dataflow.launcher import Launcher
+    from umad_common.dataflow.api.exit_codes import EXIT_INCOMPLETE, EXIT_STOPPED
+    from umad_common.dataflow.launch.launcher import Launcher
     from umad_common.datasets.drive import anomalous_root
     from umad_common.viz.headline import SCORES, percent, weakest_drive_text
     from umad_common.viz.report import write_report
@@ -268,7 +268,7 @@ def _builtin_benchmark(folder: Path, scenarios: int, frames: int) -> Path:
 
 def _eval_graph(args: argparse.Namespace, source: Path) -> dict:
     """The graph file with this evaluation's data, models and optional SAM branch filled in."""
-    from umad_common.dataflow.graph import graph_base_dir
+    from umad_common.dataflow.api.graph import graph_base_dir
 
     graph_path = args.graph.resolve()
     data = yaml.safe_load(graph_path.read_text())

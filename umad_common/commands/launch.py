@@ -48,6 +48,6 @@ def run(args) -> int:
     if args.record:
         writable_output(args.record, "--record", folder=False)
 
-    from umad_common.dataflow.launcher import Launcher
+    from umad_common.dataflow.launch.launcher import Launcher
 
     return Launcher(graph, Path(path), args.set, args.record, args.max_frames, args.hub).run()

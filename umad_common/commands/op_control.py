@@ -25,7 +25,7 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    from umad_common.dataflow.bus import Keys, ask
+    from umad_common.dataflow.transport.bus import Keys, ask
 
     action = args._words[1]
     running = connect_to_running_graph(args)

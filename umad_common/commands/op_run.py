@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from umad_common.commands.checks import InputError, checked_graph
 from umad_common.commands.common import add_connect_argument, add_graph_argument
-from umad_common.dataflow.certificates import add_certificate_arguments
+from umad_common.dataflow.transport.certificates import add_certificate_arguments
 
 
 def add_arguments(parser):
@@ -22,6 +22,6 @@ def run(args) -> int:
         ids = ", ".join(op.id for op in graph.spec.operators)
         raise InputError.of(f"operator {args.id!r}", f"not in the graph {args.graph}", f"one of its operators: {ids}")
 
-    from umad_common.dataflow.replica import run_operator
+    from umad_common.dataflow.process.replica import run_operator
 
     run_operator(graph, args.id, args.replica, args.connect, cert=args.cert, key=args.key)  # ends the process

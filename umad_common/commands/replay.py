@@ -36,7 +36,7 @@ def run(args) -> int:
     if args.record:
         writable_output(args.record, "--record", folder=False)
 
-    from umad_common.dataflow.mcap_log import LogError, read_log, read_metadata
+    from umad_common.dataflow.record.mcap_log import LogError, read_log, read_metadata
 
     graph_path = args.graph
     sets = list(args.set)
@@ -55,7 +55,7 @@ def run(args) -> int:
     graph = checked_graph(graph_path, sets, local=True)
     free_hub_port(graph.spec.hub, f"{graph_path}: hub")
 
-    from umad_common.dataflow.launcher import Launcher
+    from umad_common.dataflow.launch.launcher import Launcher
 
     try:
         count = sum(1 for _ in read_log(args.log, allow_truncated=args.allow_truncated))

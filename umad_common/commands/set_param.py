@@ -14,7 +14,7 @@ from umad_common.commands.common import (
     connect_to_running_graph,
     report,
 )
-from umad_common.dataflow.assignments import GraphError, parse_sets
+from umad_common.dataflow.api.assignments import GraphError, parse_sets
 
 
 def add_arguments(parser):
@@ -23,7 +23,7 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    from umad_common.dataflow.bus import Keys, ask
+    from umad_common.dataflow.transport.bus import Keys, ask
 
     try:
         overrides = parse_sets(args.assignments)

@@ -7,7 +7,7 @@ Operator authors import the operator API from here:
     from umad_common.dataflow import JoinParams, SourceParams  # a joining operator's, a source's pacing
     from umad_common.dataflow import input_array  # an input's array, or MissingInputError naming it
 
-The names load on first use, so `import umad_common.dataflow.bus` (what `umad set` and `umad op`
+The names load on first use, so `import umad_common.dataflow.transport.bus` (what `umad set` and `umad op`
 need) does not import numpy or pydantic.
 """
 
@@ -17,7 +17,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from umad_common.dataflow.operator import (
+    from umad_common.dataflow.api.operator import (
         Context,
         Frame,
         Input,
@@ -29,21 +29,21 @@ if TYPE_CHECKING:
         SourceFrame,
         input_array,
     )
-    from umad_common.dataflow.pacing import JoinParams, SourceParams
+    from umad_common.dataflow.api.pacing import JoinParams, SourceParams
 
 OPERATOR_API = {  # name -> the engine module that defines it
-    "Context": "operator",
-    "Frame": "operator",
-    "Input": "operator",
-    "MissingInputError": "operator",
-    "input_array": "operator",
-    "NoParams": "operator",
-    "Operator": "operator",
-    "Output": "operator",
-    "Source": "operator",
-    "SourceFrame": "operator",
-    "JoinParams": "pacing",
-    "SourceParams": "pacing",
+    "Context": "api.operator",
+    "Frame": "api.operator",
+    "Input": "api.operator",
+    "MissingInputError": "api.operator",
+    "input_array": "api.operator",
+    "NoParams": "api.operator",
+    "Operator": "api.operator",
+    "Output": "api.operator",
+    "Source": "api.operator",
+    "SourceFrame": "api.operator",
+    "JoinParams": "api.pacing",
+    "SourceParams": "api.pacing",
 }
 __all__ = [
     "Context",

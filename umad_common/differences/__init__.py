@@ -11,7 +11,7 @@ where `MyDifference` subclasses `DifferenceMetric`.
 
 from __future__ import annotations
 
-from umad_common.dataflow.plugins import registered_class
+from umad_common.dataflow.api.plugins import registered_class
 from umad_common.differences.metrics import (
     AbsDifference,
     DifferenceInputError,

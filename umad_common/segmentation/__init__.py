@@ -17,7 +17,7 @@ from __future__ import annotations
 from typing import Any
 
 from umad_common.dataflow import Context
-from umad_common.dataflow.plugins import registered_class
+from umad_common.dataflow.api.plugins import registered_class
 from umad_common.datasets.sensor_rig import SensorRig
 from umad_common.segmentation.base import (
     SegmenterInputError,

@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from umad_common.dataflow.messages import Message
+from umad_common.dataflow.api.messages import Message
 from umad_common.datasets.synthetic.scenario import (
     MAX_STEER_RAD,
     ROUTE_EGO_FROM_BOTTOM,

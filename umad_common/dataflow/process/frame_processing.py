@@ -11,12 +11,12 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING
 
-from umad_common.dataflow.delivery import OutputCache
-from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import Frame
+from umad_common.dataflow.api.messages import Message
+from umad_common.dataflow.api.operator import Frame
+from umad_common.dataflow.delivery.joiner import OutputCache
 
 if TYPE_CHECKING:
-    from umad_common.dataflow.runtime import OperatorRuntime
+    from umad_common.dataflow.process.runtime import OperatorRuntime
 
 COMPUTE_EMA = 0.2  # weight of the newest frame in the running mean of an operator's compute time
 

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import msgpack
 
-from umad_common.dataflow.bus import Keys
-from umad_common.dataflow.delivery import Stats
+from umad_common.dataflow.delivery.stats import Stats
+from umad_common.dataflow.transport.bus import Keys
 
 RESEND_FIELDS = {"run": str, "from": int, "to": int, "for": str}
 

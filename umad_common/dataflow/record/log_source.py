@@ -7,10 +7,10 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
-from umad_common.dataflow.bus import Keys
-from umad_common.dataflow.mcap_log import LogError, read_log
-from umad_common.dataflow.messages import MessageError, decode
-from umad_common.dataflow.operator import Context, Source, SourceFrame
+from umad_common.dataflow.api.messages import MessageError, decode
+from umad_common.dataflow.api.operator import Context, Source, SourceFrame
+from umad_common.dataflow.record.mcap_log import LogError, read_log
+from umad_common.dataflow.transport.bus import Keys
 
 
 def recorded_frames(

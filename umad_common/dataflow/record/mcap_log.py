@@ -6,7 +6,7 @@ Every bus message is stored as its exact payload bytes: one channel per Zenoh ke
 after RECORDING_CLOCK_START_NS), so the log opens in Foxglove on the recording's timeline beside the
 recording itself; the time of writing otherwise (AnoVox drives are stamped from 0). The
 graph and the package version are stored as metadata `umad`; whether the recording is complete (the
-payloads it lost and the frames each channel lacks, see `umad_common/dataflow/recording.py`) as metadata
+payloads it lost and the frames each channel lacks, see `umad_common/dataflow/record/recorder.py`) as metadata
 `umad_recording`, written when the log is closed. Foxglove views (`viz/...` channels, JSON
 messages of Foxglove's schemas, `umad_common/viz/foxglove.py`) may sit beside them; replay ignores
 those.
@@ -29,8 +29,8 @@ from mcap.records import Channel, Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from umad_common.dataflow.messages import Message as BusMessage
-from umad_common.dataflow.messages import MessageError, decode
+from umad_common.dataflow.api.messages import Message as BusMessage
+from umad_common.dataflow.api.messages import MessageError, decode
 
 RECORDING_METADATA = "umad_recording"  # the recorder's account of what it could not record
 

@@ -12,11 +12,11 @@ from __future__ import annotations
 from collections import defaultdict
 from typing import TYPE_CHECKING
 
-from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import Frame
+from umad_common.dataflow.api.messages import Message
+from umad_common.dataflow.api.operator import Frame
 
 if TYPE_CHECKING:
-    from umad_common.dataflow.runtime import OperatorRuntime
+    from umad_common.dataflow.process.runtime import OperatorRuntime
 
 CATCH_UP_PERIODS = 2  # an operator computes the newest ready frames it can in this many camera periods
 

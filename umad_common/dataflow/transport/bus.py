@@ -24,7 +24,7 @@ from pathlib import Path
 
 import zenoh
 
-from umad_common.dataflow.payload_ring import remove_stale_rings
+from umad_common.dataflow.transport.payload_ring import remove_stale_rings
 
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
 DIRECT_LINK_LISTEN = "tcp/127.0.0.1:0"  # a peer replica's own endpoint for its direct links (any free port)
@@ -64,7 +64,7 @@ def zenoh_config(
     at once instead of waiting for one (a command to a graph that is not running). `shm_pool_mib`:
     the session's shared-memory pool for large messages (Zenoh's default: 16 MiB); a message that
     finds no room in it goes through the hub's socket. `access_control`: the hub's Zenoh ACL
-    (`umad_common.dataflow.access`)."""
+    (`umad_common.dataflow.launch.access`)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")

@@ -12,12 +12,13 @@ from collections.abc import Callable, Iterator
 from functools import partial
 from typing import Any, Protocol
 
-from umad_common.dataflow.bus import RECORDER, Keys
-from umad_common.dataflow.delivery import LatencyWindow, Membership, Stats
-from umad_common.dataflow.graph import Graph
-from umad_common.dataflow.operator import Output, Source, SourceFrame
-from umad_common.dataflow.pacing import SourceParams
-from umad_common.dataflow.service_messages import IgnoredMessages, ServiceMessageError, read_ack
+from umad_common.dataflow.api.graph import Graph
+from umad_common.dataflow.api.operator import Output, Source, SourceFrame
+from umad_common.dataflow.api.pacing import SourceParams
+from umad_common.dataflow.delivery.joiner import Membership
+from umad_common.dataflow.delivery.service_messages import IgnoredMessages, ServiceMessageError, read_ack
+from umad_common.dataflow.delivery.stats import LatencyWindow, Stats
+from umad_common.dataflow.transport.bus import RECORDER, Keys
 
 LIVE_WAIT_S = 60.0
 PRIME_S = 3.0  # realtime pacing: the longest start-up before the camera's clock starts (`_prime`)

@@ -18,12 +18,12 @@ import time
 from collections import defaultdict
 from typing import TYPE_CHECKING
 
-from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import Frame
-from umad_common.dataflow.service_messages import encode_resend
+from umad_common.dataflow.api.messages import Message
+from umad_common.dataflow.api.operator import Frame
+from umad_common.dataflow.delivery.service_messages import encode_resend
 
 if TYPE_CHECKING:
-    from umad_common.dataflow.runtime import OperatorRuntime
+    from umad_common.dataflow.process.runtime import OperatorRuntime
 
 REWIND_RETRY_S = 10.0
 

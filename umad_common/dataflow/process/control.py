@@ -9,10 +9,10 @@ from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
-from umad_common.dataflow.assignments import GraphError, merge_params
+from umad_common.dataflow.api.assignments import GraphError, merge_params
 
 if TYPE_CHECKING:
-    from umad_common.dataflow.runtime import OperatorRuntime
+    from umad_common.dataflow.process.runtime import OperatorRuntime
 
 
 def apply_command(rt: OperatorRuntime, payload: bytes) -> dict[str, str]:

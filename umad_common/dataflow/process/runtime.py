@@ -52,19 +52,15 @@ from typing import Any, NamedTuple
 
 import zenoh
 
-from umad_common.dataflow.bus import Keys, answer
-from umad_common.dataflow.control import apply_command
-from umad_common.dataflow.delivery import FrameJoiner, Membership, Stats
-from umad_common.dataflow.delivery_live import LiveDelivery
-from umad_common.dataflow.delivery_ordered import OrderedDelivery, RunOwners
-from umad_common.dataflow.delivery_replay import ReplayDelivery
-from umad_common.dataflow.frame_processing import FrameProcessor
-from umad_common.dataflow.graph import Graph
-from umad_common.dataflow.messages import Message, MessageError, decode, encode
-from umad_common.dataflow.operator import Context, Operator, Output, Source
-from umad_common.dataflow.pacing import JoinParams
-from umad_common.dataflow.payload_ring import SWEPT_BY_LAUNCHER, PayloadReader, PayloadRing, fetch
-from umad_common.dataflow.service_messages import (
+from umad_common.dataflow.api.graph import Graph
+from umad_common.dataflow.api.messages import Message, MessageError, decode, encode
+from umad_common.dataflow.api.operator import Context, Operator, Output, Source
+from umad_common.dataflow.api.pacing import JoinParams
+from umad_common.dataflow.delivery.joiner import FrameJoiner, Membership
+from umad_common.dataflow.delivery.live import LiveDelivery
+from umad_common.dataflow.delivery.ordered import OrderedDelivery, RunOwners
+from umad_common.dataflow.delivery.replay import ReplayDelivery
+from umad_common.dataflow.delivery.service_messages import (
     IgnoredMessages,
     ServiceMessageError,
     encode_ack,
@@ -72,8 +68,13 @@ from umad_common.dataflow.service_messages import (
     read_goodbye,
     read_resend,
 )
-from umad_common.dataflow.shm_payloads import DEFAULT_POOL_MIB, ZenohShmPayloads, payload_plane
-from umad_common.dataflow.source_driver import SourceDriver
+from umad_common.dataflow.delivery.stats import Stats
+from umad_common.dataflow.process.control import apply_command
+from umad_common.dataflow.process.frame_processing import FrameProcessor
+from umad_common.dataflow.process.source_driver import SourceDriver
+from umad_common.dataflow.transport.bus import Keys, answer
+from umad_common.dataflow.transport.payload_ring import SWEPT_BY_LAUNCHER, PayloadReader, PayloadRing, fetch
+from umad_common.dataflow.transport.shm_payloads import DEFAULT_POOL_MIB, ZenohShmPayloads, payload_plane
 
 log = logging.getLogger("umad.runtime")
 
@@ -147,7 +148,7 @@ class OperatorRuntime:
         self.ignored = IgnoredMessages(self.log, self.stats)  # forged or misplaced service messages
         context = Context(op_id, replica, graph.name, graph.base_dir, self.log)
         if replay_log and issubclass(self.cls, Source):
-            from umad_common.dataflow.log_source import LoggedSource
+            from umad_common.dataflow.record.log_source import LoggedSource
 
             params = self.cls.validate_params(self.spec.params)
             self.operator: Operator = LoggedSource(replay_log, self.cls, params, context, allow_truncated)

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import zenoh
 
-from umad_common.dataflow.bus import ShutdownSignal, TlsConfig, open_hub
+from umad_common.dataflow.transport.bus import ShutdownSignal, TlsConfig, open_hub
 
 ACL_LOG_TARGET = "zenoh::net::routing::interceptor::access_control"
 REPEAT_LOG_INTERVAL_S = 10.0  # a refusal that repeats is logged again at most this often, with its count

@@ -10,11 +10,11 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from umad_common.dataflow.messages import Message
-from umad_common.dataflow.operator import Frame
+from umad_common.dataflow.api.messages import Message
+from umad_common.dataflow.api.operator import Frame
 
 if TYPE_CHECKING:
-    from umad_common.dataflow.runtime import OperatorRuntime
+    from umad_common.dataflow.process.runtime import OperatorRuntime
 
 
 class ReplayDelivery:

@@ -25,8 +25,8 @@ acks and goodbyes check that the key names the sender the message claims (`servi
 
 from __future__ import annotations
 
-from umad_common.dataflow.bus import Keys
-from umad_common.dataflow.graph import Graph
+from umad_common.dataflow.api.graph import Graph
+from umad_common.dataflow.transport.bus import Keys
 
 ALL_MESSAGES = [
     "put",

@@ -31,7 +31,7 @@ from typing import Literal
 import zenoh
 from zenoh.shm import GarbageCollect, ShmProvider
 
-from umad_common.dataflow.payload_ring import INLINE_BELOW, ring_is_correct_here
+from umad_common.dataflow.transport.payload_ring import INLINE_BELOW, ring_is_correct_here
 
 DEFAULT_POOL_MIB = 64  # a source's window of 1 MiB frames several times over, per publishing replica
 log = logging.getLogger("umad.payloads")

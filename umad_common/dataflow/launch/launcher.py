@@ -32,14 +32,14 @@ from pathlib import Path
 
 import zenoh
 
-from umad_common.dataflow.access import access_control
-from umad_common.dataflow.bus import HubJoinError, Keys, answer, cleanup_stale_shm, close_session, open_client
-from umad_common.dataflow.exit_codes import EXIT_CONFIG, EXIT_INCOMPLETE, EXIT_STOPPED
-from umad_common.dataflow.graph import Graph, GraphError, OperatorSpec, load_graph
-from umad_common.dataflow.launcher_report import ProgressLine, summary_table
-from umad_common.dataflow.mcap_log import describe_loss
-from umad_common.dataflow.payload_ring import SWEPT_BY_LAUNCHER, remove_stale_rings
-from umad_common.dataflow.recording import Recording
+from umad_common.dataflow.api.exit_codes import EXIT_CONFIG, EXIT_INCOMPLETE, EXIT_STOPPED
+from umad_common.dataflow.api.graph import Graph, GraphError, OperatorSpec, load_graph
+from umad_common.dataflow.launch.access import access_control
+from umad_common.dataflow.launch.report import ProgressLine, summary_table
+from umad_common.dataflow.record.mcap_log import describe_loss
+from umad_common.dataflow.record.recorder import Recording
+from umad_common.dataflow.transport.bus import HubJoinError, Keys, answer, cleanup_stale_shm, close_session, open_client
+from umad_common.dataflow.transport.payload_ring import SWEPT_BY_LAUNCHER, remove_stale_rings
 
 log = logging.getLogger("umad.launch")
 STOP_GRACE_S = 10.0  # a graph that finished: its idle replicas get this long to exit on SIGTERM
@@ -138,7 +138,7 @@ class Launcher:
     def _hub_command(self) -> list[str]:
         """The hub's command line. A graph's access control goes to the hub in a file only this user
         may read (`access_control_file`), not on the command line, which every local user sees."""
-        cmd = [sys.executable, "-m", "umad_common.dataflow.hub", "--listen", self.hub]
+        cmd = [sys.executable, "-m", "umad_common.dataflow.transport.hub", "--listen", self.hub]
         tls = self.graph.tls_config()
         if tls is not None:
             cmd += ["--root-ca", tls.root_ca, "--cert", tls.cert, "--key", tls.key]
@@ -155,7 +155,7 @@ class Launcher:
         cmd = [
             python,
             "-m",
-            "umad_common.dataflow.replica",
+            "umad_common.dataflow.process.replica",
             "--graph",
             str(graph_file),
             "--op",

@@ -1,6 +1,6 @@
 """One process runs one replica of one operator: connect to the hub, run the replica until its
 stream ends (sources) or a signal arrives, and end the process (`python -m
-umad_common.dataflow.replica`, what the launcher starts for every replica)."""
+umad_common.dataflow.process.replica`, what the launcher starts for every replica)."""
 
 from __future__ import annotations
 
@@ -12,15 +12,15 @@ from typing import NoReturn
 
 from threadpoolctl import threadpool_limits
 
-from umad_common.dataflow.allocator import keep_freed_memory
-from umad_common.dataflow.assignments import GraphError, parse_sets
-from umad_common.dataflow.bus import HubJoinError, ShutdownSignal, close_session, open_client
-from umad_common.dataflow.certificates import add_certificate_arguments, operator_identity
-from umad_common.dataflow.exit_codes import EXIT_CONFIG
-from umad_common.dataflow.graph import Graph, load_graph
-from umad_common.dataflow.mcap_log import LogError
-from umad_common.dataflow.payload_ring import on_this_host
-from umad_common.dataflow.runtime import OperatorRuntime
+from umad_common.dataflow.api.assignments import GraphError, parse_sets
+from umad_common.dataflow.api.exit_codes import EXIT_CONFIG
+from umad_common.dataflow.api.graph import Graph, load_graph
+from umad_common.dataflow.process.allocator import keep_freed_memory
+from umad_common.dataflow.process.runtime import OperatorRuntime
+from umad_common.dataflow.record.mcap_log import LogError
+from umad_common.dataflow.transport.bus import HubJoinError, ShutdownSignal, close_session, open_client
+from umad_common.dataflow.transport.certificates import add_certificate_arguments, operator_identity
+from umad_common.dataflow.transport.payload_ring import on_this_host
 
 log = logging.getLogger("umad.runtime")
 

@@ -27,12 +27,12 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from umad_common import DEFAULT_GRAPH, LIVE_GRAPH, resolve_path
-from umad_common.dataflow.assignments import GraphError, merge_params
-from umad_common.dataflow.bus import DEFAULT_HUB, TlsConfig
-from umad_common.dataflow.certificates import bundle_paths, operator_identity
-from umad_common.dataflow.operator import Operator, Source, UnknownOperatorError, load_operator_class
-from umad_common.dataflow.pacing import SourceParams
-from umad_common.dataflow.shm_payloads import SharedPayloads
+from umad_common.dataflow.api.assignments import GraphError, merge_params
+from umad_common.dataflow.api.operator import Operator, Source, UnknownOperatorError, load_operator_class
+from umad_common.dataflow.api.pacing import SourceParams
+from umad_common.dataflow.transport.bus import DEFAULT_HUB, TlsConfig
+from umad_common.dataflow.transport.certificates import bundle_paths, operator_identity
+from umad_common.dataflow.transport.shm_payloads import SharedPayloads
 
 
 class TlsSpec(BaseModel):
@@ -140,7 +140,7 @@ class Graph:
 
         The process presents `cert`/`key` where given (a host holding only its own certificate), and
         trusts the `ca.pem` beside `cert` if there is one; else the certificate named `identity`
-        (`umad_common.dataflow.certificates`) from its bundle in the graph's `tls.certs` folder, and
+        (`umad_common.dataflow.transport.certificates`) from its bundle in the graph's `tls.certs` folder, and
         the bundle's CA; `identity` None: the hub's, which the launcher presents too."""
         tls = self.spec.tls
         if tls is None:
@@ -324,7 +324,7 @@ def validate_graph(data: Any, path: Path | None = None) -> Graph:
             problems += [f"operator {op.id!r}: {p}" for p in cls.wiring_problems(params, set(op.inputs))]
         if issubclass(cls, Source) and not issubclass(cls.Params, SourceParams):
             problems.append(
-                f"operator {op.id!r}: a source's Params must extend umad_common.dataflow.pacing.SourceParams (its pacing)"
+                f"operator {op.id!r}: a source's Params must extend umad_common.dataflow.api.pacing.SourceParams (its pacing)"
             )
         ports = {p.name: p for p in cls.inputs}
         for name in sorted(set(op.inputs) - set(ports)):

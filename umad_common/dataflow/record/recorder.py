@@ -32,11 +32,11 @@ from pathlib import Path
 
 import zenoh
 
-from umad_common.dataflow.bus import RECORDER, Keys
-from umad_common.dataflow.graph import Graph
-from umad_common.dataflow.mcap_log import RECORDING_METADATA, McapRecorder
-from umad_common.dataflow.payload_ring import PayloadReader, fetch
-from umad_common.dataflow.service_messages import ServiceMessageError, encode_ack, read_ack
+from umad_common.dataflow.api.graph import Graph
+from umad_common.dataflow.delivery.service_messages import ServiceMessageError, encode_ack, read_ack
+from umad_common.dataflow.record.mcap_log import RECORDING_METADATA, McapRecorder
+from umad_common.dataflow.transport.bus import RECORDER, Keys
+from umad_common.dataflow.transport.payload_ring import PayloadReader, fetch
 
 log = logging.getLogger("umad.record")
 

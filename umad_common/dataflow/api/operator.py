@@ -1,7 +1,7 @@
 """What an operator module writes: its ports, its parameter schema and one per-frame function.
 
 Everything else (connecting to the hub, joining inputs by `(run, seq)`, ordering, acks, dedup,
-stats, shutdown) lives in `umad_common.dataflow.runtime`. An operator is plain Python: construct it with its
+stats, shutdown) lives in `umad_common.dataflow.process.runtime`. An operator is plain Python: construct it with its
 parameters and call `process(frame)` in a unit test, no Zenoh needed.
 
     class Negate(Operator):
@@ -29,9 +29,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from umad_common import resolve_path
-from umad_common.dataflow.messages import Message
-from umad_common.dataflow.pacing import SourceParams
-from umad_common.dataflow.plugins import import_class
+from umad_common.dataflow.api.messages import Message
+from umad_common.dataflow.api.pacing import SourceParams
+from umad_common.dataflow.api.plugins import import_class
 
 
 class NoParams(BaseModel):
