@@ -163,7 +163,9 @@ def test_switching_to_a_method_whose_input_is_not_wired_is_refused_with_the_reas
         ],
     }
     with zenoh.open(zenoh_config("peer")) as session:  # no hub, no peers
-        rt = OperatorRuntime(validate_graph(graph), "segment", 0, session, threading.Event())
+        rt = OperatorRuntime(
+            graph=validate_graph(graph), op_id="segment", replica=0, session=session, shutdown=threading.Event()
+        )
         outcome = apply_command(rt, json.dumps({"set": {"method": "geometry"}}).encode())
         assert outcome["status"] == "refused"
         assert "method 'geometry' needs input 'lidar' (e.g. replayer/lidar), which is not wired" in outcome["reason"]

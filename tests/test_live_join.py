@@ -51,7 +51,8 @@ def _received(port: str, producer: str, output: str, seq: int) -> Received:
 def join(tmp_path):
     session = zenoh.open(zenoh_config("peer"))  # no hub, no peers: publishing goes nowhere
     shutdown = threading.Event()
-    rt = OperatorRuntime(validate_graph(graph(str(tmp_path / "join.jsonl"))), "join", 0, session, shutdown)
+    join_graph = validate_graph(graph(str(tmp_path / "join.jsonl")))
+    rt = OperatorRuntime(graph=join_graph, op_id="join", replica=0, session=session, shutdown=shutdown)
     rt.members.put("source", "r0")
     rt.members.put("double", "r0")
     yield rt

@@ -49,7 +49,7 @@ def received(port: str, producer: str, output: str, seq: int) -> Received:
 def runtime():
     session = zenoh.open(zenoh_config("peer"))  # no hub, no peers: publishing goes nowhere
     shutdown = threading.Event()
-    rt = OperatorRuntime(validate_graph(GRAPH), "sink", 0, session, shutdown)
+    rt = OperatorRuntime(graph=validate_graph(GRAPH), op_id="sink", replica=0, session=session, shutdown=shutdown)
     for op in ("source", "double", "triple"):
         rt.members.put(op, "r0")
     yield rt

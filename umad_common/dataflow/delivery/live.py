@@ -10,13 +10,11 @@ has complete (possibly none: it also passes over the frames whose deadline went 
 from __future__ import annotations
 
 from collections import defaultdict
-from typing import TYPE_CHECKING
 
 from umad_common.dataflow.api.messages import Message
 from umad_common.dataflow.api.operator import Frame
-
-if TYPE_CHECKING:
-    from umad_common.dataflow.process.runtime import OperatorRuntime
+from umad_common.dataflow.delivery.joiner import FrameJoiner
+from umad_common.dataflow.delivery.paths import DeliveryHost, FrameFinisher
 
 CATCH_UP_PERIODS = 2  # an operator computes the newest ready frames it can in this many camera periods
 
@@ -24,23 +22,31 @@ CATCH_UP_PERIODS = 2  # an operator computes the newest ready frames it can in t
 class LiveDelivery:
     """The newest ready frames of each run that fit in the camera's time; the older ones passed over."""
 
-    def __init__(self, runtime: OperatorRuntime):
-        self.rt = runtime
+    def __init__(
+        self, host: DeliveryHost, *, finisher: FrameFinisher, joiner: FrameJoiner, ordered: bool, frame_period_s: float
+    ):
+        """`ordered`: a stateful operator, whose frames fall to it by run and which cannot go back;
+        `frame_period_s`: the time between two frames of the fastest realtime source."""
+        self.host = host
+        self.finisher = finisher
+        self.joiner = joiner
+        self.ordered = ordered
+        self.frame_period_s = frame_period_s
         self.next_seq: dict[str, int] = defaultdict(int)  # run -> the seq after the newest frame finished
 
     def accepts(self, msg: Message) -> bool:
         """Whether this replica joins `msg`: its frame falls to this replica (its run, for an ordered
         operator; its seq otherwise), and it was not already finished or passed over (a late input)."""
-        rt = self.rt
-        if not (rt.owns_run(msg.run, msg.seq) if rt.cls.ordered else rt.owns_seq(msg.seq)):
+        host = self.host
+        if not (host.owns_run(msg.run, msg.seq) if self.ordered else host.owns_seq(msg.seq)):
             return False
-        return not (msg.seq < self.next_seq[msg.run] and (msg.run, msg.seq) not in rt.joiner.pending)
+        return not (msg.seq < self.next_seq[msg.run] and (msg.run, msg.seq) not in self.joiner.pending)
 
     def deliver(self, ready: list[Frame]) -> None:
         """Finish what is ready (`_finish_live`), then pass over the frames whose input never came."""
         self._finish_live(ready)
-        for (run, seq), stamp_ns in self.rt.joiner.pop_expired(self.rt.deadline_s(), self.next_seq).items():
-            self._pass_over(run, seq, stamp_ns)
+        for (run, seq), stamp_ns in self.joiner.pop_expired(self.host.deadline_s(), self.next_seq).items():
+            self.finisher.pass_over(run, seq, stamp_ns)
 
     def _finish_live(self, ready: list[Frame]) -> None:
         """A camera's consumer wants every frame it can have, soon, and never a backlog; a frame
@@ -56,7 +62,7 @@ class LiveDelivery:
         superseded marker) are passed on at once and do not compete.
 
         A frame still waiting for an input while a newer one was processed stays until its deadline
-        (`OperatorRuntime.deadline_s`; then it is passed over, `FrameJoiner.pop_expired`), and is
+        (`DeliveryHost.deadline_s`; then it is passed over, `FrameJoiner.pop_expired`), and is
         processed if it completes before: a join whose inputs came by paths of different speed loses
         nothing. The newest frame is never given up (a slow input is no lost one); at the run's end
         the frames still waiting are passed over (`end_run`). An ordered operator, which
@@ -65,43 +71,32 @@ class LiveDelivery:
         and a replica restarted mid-run starts from the newest frame (no rewind: a live source's old
         frames are worthless).
         """
-        rt, processor = self.rt, self.rt.processor
+        finisher = self.finisher
         to_compute: list[Frame] = []
         for frame in sorted(ready, key=lambda f: f.seq):
-            if processor.marker_meta(frame) is None:
+            if finisher.marker_meta(frame) is None:
                 to_compute.append(frame)
             else:
-                processor.finish(frame)
-        budget_s = CATCH_UP_PERIODS * rt.frame_period_s
-        fits = max(1, int(budget_s / processor.compute_s)) if processor.compute_s > 0 else len(to_compute)
+                finisher.finish(frame)
+        budget_s = CATCH_UP_PERIODS * self.frame_period_s
+        fits = max(1, int(budget_s / finisher.compute_s)) if finisher.compute_s > 0 else len(to_compute)
         for run in dict.fromkeys(frame.run for frame in to_compute):
             frames = [frame for frame in to_compute if frame.run == run]
             for frame in frames[:-fits]:
-                self._pass_over(run, frame.seq, frame.stamp_ns)
+                finisher.pass_over(run, frame.seq, frame.stamp_ns)
             for frame in frames[-fits:]:
-                if rt.cls.ordered:
-                    for seq, stamp_ns in sorted(rt.joiner.discard_older(run, frame.seq).items()):
-                        self._pass_over(run, seq, stamp_ns)
+                if self.ordered:
+                    for seq, stamp_ns in sorted(self.joiner.discard_older(run, frame.seq).items()):
+                        finisher.pass_over(run, seq, stamp_ns)
                 self.next_seq[run] = max(self.next_seq[run], frame.seq + 1)
-                processor.finish(frame)
-
-    def _pass_over(self, run: str, seq: int, stamp_ns: int) -> None:
-        """Send a superseded marker for a frame this live operator will not process."""
-        rt = self.rt
-        rt.stats.superseded += 1
-        payloads = rt.markers(run, seq, stamp_ns, {"superseded": True})
-        rt.processor.cache.put((run, seq), payloads)
-        rt.publish(payloads, count=False)
-        if rt.is_sink:
-            rt.ack(run, seq)
+                finisher.finish(frame)
 
     def end_run(self, msg: Message) -> None:
         """Close the run; its frames still waiting for an input the source gave up on are passed over."""
-        rt = self.rt
-        payloads = rt.processor.end_run(msg)
+        payloads = self.finisher.end_run(msg)
         if payloads is None:
             return
-        for seq, stamp_ns in sorted(rt.joiner.discard_older(msg.run, msg.seq).items()):
-            self._pass_over(msg.run, seq, stamp_ns)
+        for seq, stamp_ns in sorted(self.joiner.discard_older(msg.run, msg.seq).items()):
+            self.finisher.pass_over(msg.run, seq, stamp_ns)
         self.next_seq.pop(msg.run, None)
-        rt.processor.publish_and_ack(msg.run, msg.seq, payloads)
+        self.finisher.publish_and_ack(msg.run, msg.seq, payloads)

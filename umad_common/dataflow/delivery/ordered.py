@@ -16,14 +16,10 @@ from __future__ import annotations
 import hashlib
 import time
 from collections import defaultdict
-from typing import TYPE_CHECKING
 
 from umad_common.dataflow.api.messages import Message
 from umad_common.dataflow.api.operator import Frame
-from umad_common.dataflow.delivery.service_messages import encode_resend
-
-if TYPE_CHECKING:
-    from umad_common.dataflow.process.runtime import OperatorRuntime
+from umad_common.dataflow.delivery.paths import DeliveryHost, FrameFinisher
 
 REWIND_RETRY_S = 10.0
 
@@ -83,8 +79,9 @@ class RunOwners:
 class OrderedDelivery:
     """Each run's frames finished in seq order, from its first frame."""
 
-    def __init__(self, runtime: OperatorRuntime):
-        self.rt = runtime
+    def __init__(self, host: DeliveryHost, finisher: FrameFinisher):
+        self.host = host
+        self.finisher = finisher
         self.next_seq: dict[str, int] = defaultdict(int)  # run -> the lowest seq still to process
         self.waiting: dict[str, dict[int, Frame]] = defaultdict(dict)  # run -> joined frames waiting their turn
         self.rewinds: dict[str, float] = {}  # run -> when its frames were last re-requested
@@ -93,16 +90,16 @@ class OrderedDelivery:
     def accepts(self, msg: Message) -> bool:
         """Whether this replica joins `msg`: its run belongs to this replica."""
         self.newest_seen[msg.run] = max(msg.seq, self.newest_seen.get(msg.run, 0))
-        return self.rt.owns_run(msg.run, msg.seq)
+        return self.host.owns_run(msg.run, msg.seq)
 
     def take_over(self, runs: list[str]) -> None:
         """Runs whose owner died are this replica's now: ask the sources for each from its first
         frame up to the newest that arrived here, rather than wait for their re-send timeout."""
         for run in runs:
-            if run in self.rt.processor.ended or run not in self.newest_seen:
+            if run in self.finisher.ended or run not in self.newest_seen:
                 continue
             if self._request_rewind(run, self.newest_seen[run] + 1):
-                self.rt.log.warning("run %s: its replica is gone; taking it over from its first frame", run)
+                self.host.log.warning("run %s: its replica is gone; taking it over from its first frame", run)
 
     def deliver(self, ready: list[Frame]) -> None:
         for frame in ready:
@@ -117,11 +114,11 @@ class OrderedDelivery:
         waiting = self.waiting[run]
         waiting[frame.seq] = frame
         if self.next_seq[run] == 0 and 0 not in waiting and self._request_rewind(run, frame.seq):
-            self.rt.log.warning(
+            self.host.log.warning(
                 "frame %s#%d arrived without the frames before it: asking the sources to resend them", run, frame.seq
             )
         while self.next_seq[run] in waiting:
-            self.rt.processor.finish(waiting.pop(self.next_seq[run]))
+            self.finisher.finish(waiting.pop(self.next_seq[run]))
             self.next_seq[run] += 1
 
     def _request_rewind(self, run: str, seq: int) -> bool:
@@ -129,18 +126,16 @@ class OrderedDelivery:
         from its first frame: ask the sources to send frames [0, seq) again. Every other consumer
         sees those as duplicates and answers from its cache. False when the run was asked for less
         than REWIND_RETRY_S ago (nothing sent)."""
-        rt = self.rt
         now = time.monotonic()
         if now - self.rewinds.get(run, -1e9) < REWIND_RETRY_S:
             return False
         self.rewinds[run] = now
-        for source in rt.graph.upstream_sources(rt.op_id):
-            rt.session.put(rt.keys.resend(source), encode_resend(run, 0, seq, rt.op_id))
+        self.host.request_resend(run, 0, seq)
         return True
 
     def end_run(self, msg: Message) -> None:
-        payloads = self.rt.processor.end_run(msg)
+        payloads = self.finisher.end_run(msg)
         if payloads is not None:
             self.next_seq.pop(msg.run, None)
             self.waiting.pop(msg.run, None)
-            self.rt.processor.publish_and_ack(msg.run, msg.seq, payloads)
+            self.finisher.publish_and_ack(msg.run, msg.seq, payloads)

@@ -1,37 +1,34 @@
 """The replay path: lossless delivery (a source that re-sends what was not acked) to an operator
 that keeps no state between frames. Each joined frame is finished as soon as it is complete, in
 whatever order frames complete; replicas split a run's frames by seq over the live replica set
-(`OperatorRuntime.owns_seq`), so k replicas share every run.
+(`DeliveryHost.owns_seq`), so k replicas share every run.
 
 Entry point: `ReplayDelivery.deliver(ready)`, called by the transform loop with the frames the
 joiner has complete."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from umad_common.dataflow.api.messages import Message
 from umad_common.dataflow.api.operator import Frame
-
-if TYPE_CHECKING:
-    from umad_common.dataflow.process.runtime import OperatorRuntime
+from umad_common.dataflow.delivery.paths import DeliveryHost, FrameFinisher
 
 
 class ReplayDelivery:
     """Every complete frame finished at once, in any order."""
 
-    def __init__(self, runtime: OperatorRuntime):
-        self.rt = runtime
+    def __init__(self, host: DeliveryHost, finisher: FrameFinisher):
+        self.host = host
+        self.finisher = finisher
 
     def accepts(self, msg: Message) -> bool:
         """Whether this replica joins `msg`: its frame's seq falls to this replica."""
-        return self.rt.owns_seq(msg.seq)
+        return self.host.owns_seq(msg.seq)
 
     def deliver(self, ready: list[Frame]) -> None:
         for frame in ready:
-            self.rt.processor.finish(frame)
+            self.finisher.finish(frame)
 
     def end_run(self, msg: Message) -> None:
-        payloads = self.rt.processor.end_run(msg)
+        payloads = self.finisher.end_run(msg)
         if payloads is not None:
-            self.rt.processor.publish_and_ack(msg.run, msg.seq, payloads)
+            self.finisher.publish_and_ack(msg.run, msg.seq, payloads)

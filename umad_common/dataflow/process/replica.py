@@ -52,14 +52,14 @@ def run_operator(
     shutdown = ShutdownSignal()
     tls = graph.tls_config(operator_identity(op_id), cert, key)
     hub = connect or graph.spec.hub
-    local = on_this_host(hub)
+    hub_on_this_host = on_this_host(hub)
     try:
         session = open_client(
             hub,
             tls,
             cancel=shutdown.event,
             shm_pool_mib=graph.spec.shm_pool_mib,
-            direct_links=local and graph.spec.direct_links and tls is None,
+            direct_links=hub_on_this_host and graph.spec.direct_links and tls is None,
         )
     except HubJoinError as exc:
         log.error("operator %s could not join: %s", op_id, exc)
@@ -70,7 +70,15 @@ def run_operator(
     code = 0
     try:
         runtime = OperatorRuntime(
-            graph, op_id, replica, session, shutdown.event, max_frames, replay_log, allow_truncated, local
+            graph=graph,
+            op_id=op_id,
+            replica=replica,
+            session=session,
+            shutdown=shutdown.event,
+            max_frames=max_frames,
+            replay_log=replay_log,
+            allow_truncated=allow_truncated,
+            hub_on_this_host=hub_on_this_host,
         )
     except Exception as exc:  # bad parameters, missing weights: say so once, do not restart
         log.error("operator %s could not start: %s: %s", op_id, type(exc).__name__, exc)

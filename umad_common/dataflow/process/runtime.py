@@ -4,20 +4,13 @@ It owns everything an operator module should not have to write: the Zenoh sessio
 `(run, seq)`, in-order delivery, the replica split, the output cache that answers retransmissions,
 end-to-end acks, end-of-run markers, stats, runtime parameter changes, and a clean shutdown.
 
-Where each part lives:
-  - this module: the subscriptions, the live membership, publishing, stats, and the transform loop
-    that takes each input message, joins it, and hands the complete frames to a delivery path;
-  - the delivery paths, one module each, one entry point each (`deliver`): `delivery_replay.py`
-    (lossless, stateless operators: any order, frames split by seq over replicas),
-    `delivery_ordered.py` (lossless, stateful operators: each run in seq order from seq 0) and
-    `delivery_live.py` (a realtime source: the newest frames, the older ones passed over);
-  - `frame_processing.py`: what every path does with a frame it finishes (compute, cache, publish,
-    ack) and with a run's end;
-  - `control.py`: the commands on the control key; `replica.py`: the process around a replica;
-  - `service_messages.py`: acks, goodbyes and resend requests, each taken only from the sender its
-    key names;
-  - `delivery.py`: the bookkeeping (joiner, membership, output cache, stats);
-  - `source_driver.py`: how a source paces, re-sends and closes runs.
+This module holds the subscriptions, the live membership, publishing, stats, and the transform loop
+that joins each input message (`delivery/joiner.py`) and hands the complete frames to a delivery
+strategy: `delivery/replay.py` (lossless, stateless), `ordered.py` (lossless, stateful) or `live.py`
+(a realtime source). The strategy finishes frames through the frame processor (`frame_processing.py`);
+commands go to `control.py`, a source's pacing to `source_driver.py`. Each of these sees the runtime
+only through a small Protocol of its own (`DeliveryHost`, `FrameHost`, `ControlHost`, `SourceHost`),
+which `OperatorRuntime` fits as it is, so none imports this module.
 
 Delivery protocol (lossless by design):
   - a source keeps at most `window` frames in flight and forgets a frame once every sink of the
@@ -40,7 +33,6 @@ worked out once, or again when the live membership changes, never per frame.
 
 from __future__ import annotations
 
-import fnmatch
 import json
 import logging
 import os
@@ -59,12 +51,15 @@ from umad_common.dataflow.api.pacing import JoinParams
 from umad_common.dataflow.delivery.joiner import FrameJoiner, Membership
 from umad_common.dataflow.delivery.live import LiveDelivery
 from umad_common.dataflow.delivery.ordered import OrderedDelivery, RunOwners
+from umad_common.dataflow.delivery.paths import DeliveryPath
 from umad_common.dataflow.delivery.replay import ReplayDelivery
+from umad_common.dataflow.delivery.routes import expected_producers
 from umad_common.dataflow.delivery.service_messages import (
     IgnoredMessages,
     ServiceMessageError,
     encode_ack,
     encode_goodbye,
+    encode_resend,
     read_goodbye,
     read_resend,
 )
@@ -119,6 +114,7 @@ class OperatorRuntime:
 
     def __init__(
         self,
+        *,
         graph: Graph,
         op_id: str,
         replica: int,
@@ -127,10 +123,10 @@ class OperatorRuntime:
         max_frames: int | None = None,
         replay_log: str | None = None,
         allow_truncated: bool = False,
-        shared_payloads: bool = True,
+        hub_on_this_host: bool = True,
     ):
-        """`shared_payloads=False`: publish every payload through Zenoh even where the graph asks
-        for shared memory (a replica whose hub is on another host)."""
+        """`hub_on_this_host=False` (a replica whose hub is on another host): publish every payload
+        through Zenoh even where the graph asks for shared memory."""
         self.graph = graph
         self.replay_log = replay_log
         self.allow_truncated = allow_truncated
@@ -158,7 +154,7 @@ class OperatorRuntime:
         self.ctl_q: queue.Queue = queue.Queue()
         self.members = Membership()
         self.resend_requests: list[dict] = []  # sources: frames a restarted ordered operator needs again
-        plane = payload_plane(graph.spec.shared_payloads if shared_payloads else False)
+        plane = payload_plane(graph.spec.shared_payloads if hub_on_this_host else False)
         self.ring = PayloadRing(self.keys.payload(op_id)) if plane == "ring" else None
         self.shm = ZenohShmPayloads(graph.spec.shm_pool_mib or DEFAULT_POOL_MIB) if plane == "zenoh_shm" else None
         self.reader = PayloadReader()
@@ -181,22 +177,29 @@ class OperatorRuntime:
         self._cpu_from: float | None = None  # process CPU at the first frame (start-up is no frame's cost)
         self._last_bad_log = 0.0
         self.is_sink = op_id in graph.sinks()  # sinks ack frames end to end
-        self.live = self._live_mode()
-        self.frame_period_s = self._camera_period_s()
+        rates = self._realtime_rates()
+        self.live = bool(rates)  # a source paces in real time: joins may give up at their deadline
+        self.frame_period_s = 1.0 / max(rates) if rates else 0.0  # live: the camera period
         self.params_meta = self.operator.params.model_dump(mode="json")  # recorded in every output
         self._route_cache: tuple[dict[str, set[str]], list[str]] | None = None  # expected producers, replicas
         self.run_owners = RunOwners(self.replica_id)  # ordered operators: which replica owns each run
-        self.processor = FrameProcessor(self)
-        self.path = self._delivery_path()
+        self.processor = FrameProcessor(self, self.operator, ordered=self.cls.ordered)
+        self.delivery = self._choose_delivery()
 
-    def _delivery_path(self) -> LiveDelivery | OrderedDelivery | ReplayDelivery:
+    def _choose_delivery(self) -> DeliveryPath:
         """How this replica delivers the frames it joined: live (a realtime source), ordered (a
         stateful operator) or replay (lossless, any order)."""
         if self.live:
-            return LiveDelivery(self)
+            return LiveDelivery(
+                self,
+                finisher=self.processor,
+                joiner=self.joiner,
+                ordered=self.cls.ordered,
+                frame_period_s=self.frame_period_s,
+            )
         if self.cls.ordered:
-            return OrderedDelivery(self)
-        return ReplayDelivery(self)
+            return OrderedDelivery(self, self.processor)
+        return ReplayDelivery(self, self.processor)
 
     # -- wiring -----------------------------------------------------------------------------------
 
@@ -243,7 +246,8 @@ class OperatorRuntime:
         """The producers each wildcard port waits for and this operator's sorted live replicas:
         computed again only after the live membership changed."""
         if self._route_cache is None:
-            self._route_cache = (self._expected(), sorted(self.members.replicas(self.op_id) | {self.replica_id}))
+            expected = expected_producers(self.graph, self.spec, self.cls.inputs, self.members.ops())
+            self._route_cache = (expected, sorted(self.members.replicas(self.op_id) | {self.replica_id}))
         return self._route_cache
 
     def owns_seq(self, seq: int) -> bool:
@@ -261,27 +265,8 @@ class OperatorRuntime:
     def _replica_gone(self, replica: str) -> None:
         """A sibling replica's token went: the runs it owned that now fall to this one are taken over."""
         taken = self.run_owners.replica_gone(replica, set(self.members.live.get(self.op_id, ())))
-        if taken and isinstance(self.path, OrderedDelivery):
-            self.path.take_over(taken)
-
-    def _produces(self, op: str, source: str) -> bool:
-        """Whether operator `op` publishes on wiring pattern `source`; an operator this graph file
-        does not know (started from another file) is matched by its id alone."""
-        if op in self.graph.classes:
-            return any(p == op for p, _ in self.graph.producers(source))
-        return fnmatch.fnmatchcase(op, source.partition("/")[0])
-
-    def _expected(self) -> dict[str, set[str]]:
-        expected = {}
-        for port in self.cls.inputs:
-            if port.many:
-                expected[port.name] = {
-                    op
-                    for op in self.members.ops()
-                    if not op.startswith("_")  # the recorder's token: a consumer, never a producer
-                    and any(self._produces(op, src) for src in self.spec.sources_of(port.name))
-                }
-        return expected
+        if taken and isinstance(self.delivery, OrderedDelivery):
+            self.delivery.take_over(taken)
 
     # -- service messages ---------------------------------------------------------------------------
 
@@ -326,16 +311,6 @@ class OperatorRuntime:
         sources = (self.graph.classes[s].validate_params(self.graph.op(s).params) for s in self.graph.sources())
         return [params.rate_hz for params in sources if params.pacing == "realtime"]
 
-    def _live_mode(self) -> bool:
-        """Live (a source paces in real time): joins may give up at their deadline. Lossless (the
-        default): every expected input is waited for."""
-        return bool(self._realtime_rates())
-
-    def _camera_period_s(self) -> float:
-        """Live mode: the time between two frames of the fastest realtime source (0 when lossless)."""
-        rates = self._realtime_rates()
-        return 1.0 / max(rates) if rates else 0.0
-
     def deadline_s(self) -> float:
         """How long a partly joined frame may wait in live mode: a joining operator's `deadline_ms`
         (`umad set OP.deadline_ms=...` applies from the next frame on), else JoinParams' default."""
@@ -360,7 +335,7 @@ class OperatorRuntime:
         """The message; a reference to a ring this host cannot map is fetched from its publisher. A
         payload nobody has any more is counted in `lost_payloads` and left to the source's
         retransmission, which brings the frame again; in live mode, where nothing is re-sent, its
-        frame is passed over at its deadline (`delivery_live.py`)."""
+        frame is passed over at its deadline (`delivery/live.py`)."""
         if not isinstance(received.message, bytes):
             return received.message
         payload = fetch(self.session, self.keys.payload(self.keys.parse_data(received.key)[0]), received.message)
@@ -427,6 +402,11 @@ class OperatorRuntime:
     def ack(self, run: str, seq: int) -> None:
         self.ack_pub.put(encode_ack(run, seq, self.op_id))
 
+    def request_resend(self, run: str, first: int, end: int) -> None:
+        """Ask every source upstream of this operator to send frames [first, end) of `run` again."""
+        for source in self.graph.upstream_sources(self.op_id):
+            self.session.put(self.keys.resend(source), encode_resend(run, first, end, self.op_id))
+
     def markers(self, run: str, seq: int, stamp_ns: int, meta: dict) -> list[tuple[str, bytes]]:
         """Array-less messages on every output: an end-of-run marker or a frame's error marker."""
         return [(port, encode(Message(run, seq, stamp_ns, self.op_id, meta))) for port in self.cls.outputs]
@@ -483,7 +463,7 @@ class OperatorRuntime:
             if self.shutdown.is_set():  # a stopping graph: producers leaving now are no reason to complete a frame
                 break
             ready = self.joiner.pop_ready(self._routes()[0], deadline_s)
-            self.path.deliver(ready)
+            self.delivery.deliver(ready)
 
     def _take_waiting(self) -> bool:
         """Live mode: take every message already queued; True when any of them needs a join."""
@@ -511,9 +491,9 @@ class OperatorRuntime:
         key = (msg.run, msg.seq)
         producer = self.keys.parse_data(received.key)[0]
         if msg.meta.get("eos"):
-            self.path.end_run(msg)
+            self.delivery.end_run(msg)
             return False
-        if self.processor.answer_duplicate(key) or not self.path.accepts(msg):
+        if self.processor.answer_duplicate(key) or not self.delivery.accepts(msg):
             return False
         self.joiner.add(received.port, producer, msg)
         return True
