@@ -23,16 +23,9 @@ from umad_common.metrics.pixel import PixelMetrics
 from umad_common.refine import refine
 from umad_common.viz.headline import scored_every
 from umad_common.viz.report import write_report
-from umad_replay.sweep import (
-    REFINE_MODES,
-    Config,
-    MaskSet,
-    PaintedMap,
-    paper_weight_rows,
-    sweep_log,
-    weight_rows,
-    weights_label,
-)
+from umad_replay.configurations import REFINE_MODES, Config, paper_weight_rows, weight_rows, weights_label
+from umad_replay.row_scoring import MaskSet, PaintedMap
+from umad_replay.sweep import sweep_log
 
 H, W, h, w = 16, 24, 8, 12  # camera / truth size, model size
 METRIC_OPS = {
@@ -291,7 +284,7 @@ def test_rows_and_settings(result):
 
 
 def test_two_segmenters_of_one_method_are_named_by_their_ops():
-    from umad_replay.sweep import masks_name
+    from umad_replay.configurations import masks_name
 
     segmenters = {"seg_gt": "gt", "segment_unsup": "geometry", "segment_nosnap": "geometry"}
     assert masks_name(segmenters, "seg_gt") == "gt"
@@ -804,7 +797,7 @@ def test_the_shipped_configuration_is_scored_and_leads_the_report(tmp_path):
 
 
 def test_a_shipped_configuration_that_is_a_row_of_the_table_adds_none():
-    from umad_replay.sweep import shipped_row_index, with_shipped_row
+    from umad_replay.configurations import shipped_row_index, with_shipped_row
 
     shipped = {"weights": dict.fromkeys(("abs", "mse", "ssim", "perceptual", "temporal"), 0.2), "mode": "max"}
     rows = weight_rows()
