@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from umad_common.dataflow import Context, Frame, Input, Operator, Output, input_array
 from umad_common.differences import (
+    METRICS,
     DifferenceMetric,
     MetricOptions,
     RangePairs,
@@ -34,7 +35,7 @@ FRAME_ARRAYS = ("target", "recon", "preds", "pred_valid")
 
 
 class Difference(Operator):
-    """Computes one difference metric (abs, mse, ssim, perceptual, temporal or an import path)."""
+    """Computes one difference metric: a name in `umad_common.differences.METRICS` or an import path."""
 
     kind = "difference"
     inputs = (Input("frame"),)
@@ -45,8 +46,7 @@ class Difference(Operator):
 
         metric: str = Field(
             "abs",
-            description="abs | mse | ssim | ssim_shift | perceptual | temporal | lidar, or `package.module:Class` of "
-            "a DifferenceMetric",
+            description=f"{' | '.join(METRICS)}, or `package.module:Class` of a DifferenceMetric",
         )
         normalization: Literal["minmax", "robust", "calibrated"] = Field(
             "minmax",

@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 from umad_common.commands.checks import InputError, drives, free_hub_port, model_file, writable_output
+from umad_common.commands.common import add_frames_argument, add_out_argument, add_seed_argument
 
 BENCHES = (
     "bus",
@@ -32,10 +33,8 @@ HUB_BENCHES = {"bus", "scaling", "record", "live", "control", "pipeline"}  # the
 
 def add_arguments(parser):
     parser.add_argument("which", nargs="?", default="all", choices=[*BENCHES, "all"])
-    parser.add_argument("--out", type=Path, default=None, help="write results as JSON (and .md beside it)")
-    parser.add_argument(
-        "--frames", type=int, default=None, help="frames per bench, commands for control (default: each bench's own)"
-    )
+    add_out_argument(parser, help="write results as JSON (and .md beside it)", required=False)
+    add_frames_argument(parser, None, help="frames per bench, commands for control (default: each bench's own)")
     parser.add_argument("--pixels", type=int, default=10**8, help="pixels for the metrics bench")
     parser.add_argument(
         "--op",
@@ -73,9 +72,7 @@ def add_arguments(parser):
         "--methods", nargs="+", default=None, help="segmenters: these methods only (default: every registered one)"
     )
     parser.add_argument("--world-model", type=Path, default=None, help="segmenters: also measure refined pixel AP")
-    parser.add_argument(
-        "--seed", type=int, default=2, help="segmenters: seed of the generated drives (2: validation; eval uses 1)"
-    )
+    add_seed_argument(parser, 2, help="segmenters: seed of the generated drives (2: validation; eval uses 1)")
 
 
 def run(args) -> int:

@@ -17,15 +17,19 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from umad_common import ASSETS, recorded_path
-from umad_common.commands.checks import add_topics_argument, model_file, normal_drives, writable_output
+from umad_common.commands.checks import model_file, normal_drives, writable_output
+from umad_common.commands.common import (
+    add_data_argument,
+    add_frames_argument,
+    add_out_argument,
+    add_topics_argument,
+)
 
 log = logging.getLogger("umad.calibrate")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "data", type=Path, help="drives: a benchmark folder (its normal/ drives are used) or normal drives"
-    )
+    add_data_argument(parser)
     add_topics_argument(parser)
     parser.add_argument(
         "--world-model", type=Path, required=True, help="world model weights (MODEL.safetensors + MODEL.json)"
@@ -46,10 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="PKG.MOD:CLASS",
         help="also calibrate a user's own DifferenceMetric (repeatable)",
     )
-    parser.add_argument("--out", type=Path, required=True, help="calibration JSON to write")
-    parser.add_argument(
-        "--frames", type=int, default=240, help="at most this many frames, split over the drives (default 240)"
-    )
+    add_out_argument(parser, help="calibration JSON to write")
+    add_frames_argument(parser, 240, help="at most this many frames, split over the drives (default 240)")
     parser.add_argument(
         "--horizon", type=int, default=3, help="predictions per frame, as the graph's world model (default 3)"
     )

@@ -18,7 +18,7 @@ from pathlib import Path
 import yaml
 
 from umad_common.commands.checks import InputError, checked_graph
-from umad_common.commands.common import add_graph_argument
+from umad_common.commands.common import add_graph_argument, add_out_argument
 from umad_common.dataflow.transport.certificates import (
     CONTROL,
     HUB,
@@ -32,7 +32,7 @@ from umad_common.dataflow.transport.certificates import (
 
 def add_arguments(parser):
     add_graph_argument(parser, positional=True)
-    parser.add_argument("--out", required=True, help="folder for the holders' bundles (the graph's tls.certs)")
+    add_out_argument(parser, help="folder for the holders' bundles (the graph's tls.certs)")
     parser.add_argument(
         "--ca",
         type=Path,

@@ -136,17 +136,6 @@ def evaluation_run(path: Path, name: str) -> Path:
     return path
 
 
-def add_topics_argument(parser) -> None:
-    """`--topics`, for every verb that reads drives."""
-    parser.add_argument(
-        "--topics",
-        default=None,
-        metavar="ROLE=TOPIC,...",
-        help="recordings: the topic of each role, e.g. camera=/a,lidar=/b,odometry=/c,control=/d,labels=/e; "
-        "roles not named are chosen by type (`umad data info DATA` shows the choice)",
-    )
-
-
 def drive_paths(data: Path, name: str) -> list[Path]:
     """The drives under `data` (a folder, or one recording file), found by listing; InputError when
     there are none."""

@@ -1,4 +1,8 @@
-"""Argument helpers the graph-running verbs share, and how a command reaches the running graph.
+"""Argument helpers the verbs share, and how a command reaches the running graph.
+
+Each argument several verbs take (DATA, `--out`, `--seed`, `--frames`, `--epochs`, `--topics`,
+`--device`, the graph file and hub) is declared here once, each verb passing its own default and,
+where it means more than the common text says, its own help.
 
 `umad set` and `umad op start|stop` never import an operator: they ask the hub which graph runs
 there (the launcher answers with its name, file and operators), then send their command as a query
@@ -19,6 +23,70 @@ from umad_common.dataflow.transport.certificates import CONTROL, add_certificate
 
 CONNECT_TIMEOUT_S = 10.0  # how long a command waits for the hub's answer once connected
 ANSWER_TIMEOUT_S = 30.0  # a replica answers between two frames; only a hung one takes this long
+
+
+NORMAL_DRIVES_HELP = "drives: a benchmark folder (its normal/ drives are used) or normal drives"
+WEIGHTS_FILE_HELP = "weights file (.safetensors); its .json record is written beside it"
+
+
+def add_data_argument(parser: argparse.ArgumentParser, help: str = NORMAL_DRIVES_HELP) -> None:
+    """The positional DATA: the drives a verb reads (default help: a training verb's normal drives)."""
+    parser.add_argument("data", type=Path, help=help)
+
+
+def add_topics_argument(parser: argparse.ArgumentParser) -> None:
+    """`--topics`, for every verb that reads drives."""
+    parser.add_argument(
+        "--topics",
+        default=None,
+        metavar="ROLE=TOPIC,...",
+        help="recordings: the topic of each role, e.g. camera=/a,lidar=/b,odometry=/c,control=/d,labels=/e; "
+        "roles not named are chosen by type (`umad data info DATA` shows the choice)",
+    )
+
+
+def add_out_argument(
+    parser: argparse.ArgumentParser,
+    help: str = WEIGHTS_FILE_HELP,
+    required: bool = True,
+    default: Path | None = None,
+) -> None:
+    """`--out PATH`: what the verb writes (default help: a training verb's weights file)."""
+    parser.add_argument("--out", type=Path, required=required, default=default, help=help)
+
+
+def _add_count_argument(
+    parser: argparse.ArgumentParser, flag: str, phrase: str, default: int | None, help: str | None, shown: int | None
+) -> None:
+    """An integer `flag`, its help `help`, else `phrase (default N)`: N is `default`, or `shown` where
+    `default` is None because the verb's own config fills it in."""
+    if help is None:
+        named = default if default is not None else shown
+        if named is None:
+            raise ValueError(f"{flag}: a help text, a default or the default shown is needed")
+        help = f"{phrase} (default {named})"
+    parser.add_argument(flag, type=int, default=default, help=help)
+
+
+def add_seed_argument(
+    parser: argparse.ArgumentParser, default: int | None = 0, help: str | None = None, shown: int | None = None
+) -> None:
+    """`--seed N` (default help: `random seed (default N)`)."""
+    _add_count_argument(parser, "--seed", "random seed", default, help, shown)
+
+
+def add_frames_argument(
+    parser: argparse.ArgumentParser, default: int | None, help: str | None = None, shown: int | None = None
+) -> None:
+    """`--frames N` (default help: a training verb's frame budget, spread over its drives)."""
+    _add_count_argument(parser, "--frames", "at most this many frames, spread over all scenarios", default, help, shown)
+
+
+def add_epochs_argument(
+    parser: argparse.ArgumentParser, default: int | None, help: str | None = None, shown: int | None = None
+) -> None:
+    """`--epochs N` (default help: passes over the frames a training verb loaded)."""
+    _add_count_argument(parser, "--epochs", "passes over the loaded frames", default, help, shown)
 
 
 def add_graph_argument(parser: argparse.ArgumentParser, positional: bool = False) -> None:

@@ -6,13 +6,14 @@ import argparse
 from pathlib import Path
 
 from umad_common.commands.checks import evaluation_run, writable_output
+from umad_common.commands.common import add_out_argument
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_a", type=Path, help="evaluation folder (or its results.json): the reference A")
     parser.add_argument("run_b", type=Path, help="evaluation folder (or its results.json): B, compared with A")
-    parser.add_argument(
-        "--out", type=Path, default=None, help="write compare.md and compare.html here (default: print the Markdown)"
+    add_out_argument(
+        parser, help="write compare.md and compare.html here (default: print the Markdown)", required=False
     )
 
 

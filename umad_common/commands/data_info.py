@@ -16,7 +16,8 @@ import argparse
 import json
 from pathlib import Path
 
-from umad_common.commands.checks import add_topics_argument, drive_paths, opened
+from umad_common.commands.checks import drive_paths, opened
+from umad_common.commands.common import add_topics_argument
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -33,7 +33,6 @@ import yaml
 from umad_common import ASSETS, SAM_ENV_SCRIPT
 from umad_common.commands.checks import (
     InputError,
-    add_topics_argument,
     checked_graph,
     evaluation_drives,
     existing_file,
@@ -43,7 +42,7 @@ from umad_common.commands.checks import (
     print_notice,
     writable_output,
 )
-from umad_common.commands.common import DEFAULT_GRAPH
+from umad_common.commands.common import DEFAULT_GRAPH, add_frames_argument, add_out_argument, add_topics_argument
 
 log = logging.getLogger("umad.eval")
 
@@ -69,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--graph", type=Path, default=DEFAULT_GRAPH, help="graph file (default: the built-in graph.yaml)"
     )
-    parser.add_argument("--out", type=Path, default=Path("umad-eval"), help="report folder (default: ./umad-eval)")
+    add_out_argument(parser, help="report folder (default: ./umad-eval)", required=False, default=Path("umad-eval"))
     parser.add_argument(
         "--world-model", type=Path, default=ASSETS / "world_model.safetensors", help="world model weights"
     )
@@ -103,7 +102,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=12,
         help="built-in benchmark: anomalous scenarios to generate (3 per anomaly category)",
     )
-    parser.add_argument("--frames", type=int, default=100, help="built-in benchmark: frames per scenario")
+    add_frames_argument(parser, 100, help="built-in benchmark: frames per scenario")
     parser.add_argument(
         "--sam-checkpoint", type=Path, default=None, help="segment-anything checkpoint: adds the SAM mask rows"
     )

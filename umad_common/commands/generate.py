@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 from umad_common.commands.checks import InputError, writable_output
+from umad_common.commands.common import add_frames_argument, add_seed_argument
 
 log = logging.getLogger("umad.generate")
 
@@ -62,12 +63,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--anomalous", type=int, default=None, help="number of drives with an anomaly (default 6; --stress: 8)"
     )
-    parser.add_argument("--frames", type=int, default=200, help="frames per drive at 10 Hz (default 200)")
-    parser.add_argument(
-        "--seed",
-        type=int,
-        default=None,
-        help="master seed; same seed, same bytes (default 0; --stress: 30; --stress-light: 43)",
+    add_frames_argument(parser, 200, help="frames per drive at 10 Hz (default 200)")
+    add_seed_argument(
+        parser, None, help="master seed; same seed, same bytes (default 0; --stress: 30; --stress-light: 43)"
     )
     parser.add_argument("--size", type=parse_size, default=(384, 256), help="camera image size WxH (default 384x256)")
     sets = parser.add_mutually_exclusive_group()

@@ -8,18 +8,14 @@ import os
 from pathlib import Path
 
 from umad_common.commands.checks import InputError, recorded_log, writable_output
+from umad_common.commands.common import add_out_argument
 
 log = logging.getLogger("umad.sweep")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", type=Path, help="MCAP log recorded by `umad eval` / the recorder")
-    parser.add_argument(
-        "--out",
-        type=Path,
-        required=True,
-        help="report folder (created): results.json, table.md/csv, PNGs, index.md/html",
-    )
+    add_out_argument(parser, help="report folder (created): results.json, table.md/csv, PNGs, index.md/html")
     parser.add_argument("--every", type=int, default=1, help="evaluate frames with seq %% every == 0 (default 1: all)")
     parser.add_argument(
         "--lag", type=int, default=32, help="frames a run must move on before a frame counts as complete (default 32)"

@@ -15,14 +15,13 @@ import argparse
 import json
 from pathlib import Path
 
-from umad_common.commands.checks import add_topics_argument, drives, model_file
+from umad_common.commands.checks import drives, model_file
+from umad_common.commands.common import add_data_argument, add_topics_argument
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", type=Path, help="MODEL or MODEL.safetensors (with MODEL.json beside it)")
-    parser.add_argument(
-        "data", type=Path, help="drives: a benchmark (normal/ and anomalous/) or a folder of normal drives"
-    )
+    add_data_argument(parser, help="drives: a benchmark (normal/ and anomalous/) or a folder of normal drives")
     add_topics_argument(parser)
     parser.add_argument("--horizon", type=int, default=3, help="prediction steps to score (default 3)")
     parser.add_argument("--normal-limit", type=int, default=None, help="score only the first N unseen normal drives")

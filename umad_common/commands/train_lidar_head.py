@@ -15,19 +15,27 @@ import os
 import shlex
 from pathlib import Path
 
-from umad_common.commands.checks import add_topics_argument, model_file, training_inputs
-from umad_common.commands.common import add_device_argument, resolve_device_or_exit
+from umad_common.commands.checks import model_file, training_inputs
+from umad_common.commands.common import (
+    add_data_argument,
+    add_device_argument,
+    add_epochs_argument,
+    add_out_argument,
+    add_seed_argument,
+    add_topics_argument,
+    resolve_device_or_exit,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("data", type=Path, help="drives: the normal drives the world model was trained on")
+    add_data_argument(parser, help="drives: the normal drives the world model was trained on")
     add_topics_argument(parser)
     parser.add_argument(
         "--world-model", type=Path, required=True, help="a world model without a lidar head (MODEL.safetensors)"
     )
-    parser.add_argument("--out", type=Path, required=True, help="output path without suffix (NEW.safetensors + .json)")
-    parser.add_argument("--epochs", type=int, default=8, help="passes over the normal drives (default 8)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the head's initialisation and the window order")
+    add_out_argument(parser, help="output path without suffix (NEW.safetensors + .json)")
+    add_epochs_argument(parser, 8, help="passes over the normal drives (default 8)")
+    add_seed_argument(parser, 0, help="seed of the head's initialisation and the window order")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     add_device_argument(parser)
 

@@ -4,33 +4,35 @@ from __future__ import annotations
 
 import argparse
 import logging
-from pathlib import Path
 
-from umad_common.commands.checks import add_topics_argument, training_inputs
-from umad_common.commands.common import add_device_argument, resolve_device_or_exit
+from umad_common.commands.checks import training_inputs
+from umad_common.commands.common import (
+    add_data_argument,
+    add_device_argument,
+    add_epochs_argument,
+    add_frames_argument,
+    add_out_argument,
+    add_seed_argument,
+    add_topics_argument,
+    resolve_device_or_exit,
+)
 
 log = logging.getLogger("umad.train.mnad")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "data", type=Path, help="drives: a benchmark folder (its normal/ drives are used) or normal drives"
-    )
+    add_data_argument(parser)
     add_topics_argument(parser)
-    parser.add_argument(
-        "--out", type=Path, required=True, help="weights file (.safetensors); its .json config is written beside it"
-    )
-    parser.add_argument("--epochs", type=int, default=3, help="passes over the loaded frames (default 3)")
+    add_out_argument(parser)
+    add_epochs_argument(parser, 3)
     parser.add_argument(
         "--minutes",
         type=float,
         default=None,
         help="train for about this long instead (the epochs that fit, from a timed step; recorded in the JSON)",
     )
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument(
-        "--frames", type=int, default=1200, help="at most this many frames, spread over all scenarios (default 1200)"
-    )
+    add_seed_argument(parser)
+    add_frames_argument(parser, 1200)
     parser.add_argument("--batch-size", type=int, default=8, help="frames per step (default 8)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     add_device_argument(parser)

@@ -12,27 +12,30 @@ import argparse
 import logging
 import os
 import shlex
-from pathlib import Path
 
-from umad_common.commands.checks import add_topics_argument, training_inputs
-from umad_common.commands.common import add_device_argument, resolve_device_or_exit
+from umad_common.commands.checks import training_inputs
+from umad_common.commands.common import (
+    add_data_argument,
+    add_device_argument,
+    add_epochs_argument,
+    add_frames_argument,
+    add_out_argument,
+    add_seed_argument,
+    add_topics_argument,
+    resolve_device_or_exit,
+)
 
 log = logging.getLogger("umad.train.segmenter")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "data", type=Path, help="drives: a benchmark folder (its normal/ drives are used) or normal drives"
-    )
+    add_data_argument(parser)
     add_topics_argument(parser)
-    parser.add_argument(
-        "--out", type=Path, required=True, help="weights file (.safetensors); its .json record is written beside it"
-    )
-    parser.add_argument("--epochs", type=int, default=None, help="passes over the loaded frames (default 4)")
-    parser.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
-    parser.add_argument(
-        "--frames", type=int, default=None, help="at most this many frames, spread over all scenarios (default 1200)"
-    )
+    add_out_argument(parser)
+    # left None: SegmenterTrainingConfig's defaults apply, and `command_line` records only the flags given
+    add_epochs_argument(parser, None, shown=4)
+    add_seed_argument(parser, None, shown=0)
+    add_frames_argument(parser, None, shown=1200)
     parser.add_argument("--batch-size", type=int, default=None, help="frames per step (default 8)")
     parser.add_argument("--clusters", type=int, default=None, help="prototypes, i.e. segment classes (default 24)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (results depend on it)")

@@ -25,20 +25,24 @@ import shlex
 from dataclasses import asdict
 from pathlib import Path
 
-from umad_common.commands.checks import add_topics_argument, existing_file, training_inputs
-from umad_common.commands.common import add_device_argument, resolve_device_or_exit
+from umad_common.commands.checks import existing_file, training_inputs
+from umad_common.commands.common import (
+    add_data_argument,
+    add_device_argument,
+    add_epochs_argument,
+    add_out_argument,
+    add_seed_argument,
+    add_topics_argument,
+    resolve_device_or_exit,
+)
 
 DEFAULT_EPOCHS = 35
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "data", type=Path, help="drives: a benchmark folder (its normal/ drives are used) or normal drives"
-    )
+    add_data_argument(parser)
     add_topics_argument(parser)
-    parser.add_argument(
-        "--out", type=Path, required=True, help="output path without suffix, e.g. umad_common/assets/world_model"
-    )
+    add_out_argument(parser, help="output path without suffix, e.g. umad_common/assets/world_model")
     parser.add_argument(
         "--config",
         type=Path,
@@ -46,10 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="a saved MODEL.json (or any JSON with 'config' and 'train_config'): train with its configs; "
         "flags given here override them",
     )
-    parser.add_argument(
-        "--epochs", type=int, default=None, help=f"total epochs (default {DEFAULT_EPOCHS}, or the --config's)"
-    )
-    parser.add_argument("--seed", type=int, default=None, help="seed of initialisation, window order and latent noise")
+    add_epochs_argument(parser, None, help=f"total epochs (default {DEFAULT_EPOCHS}, or the --config's)")
+    add_seed_argument(parser, None, help="seed of initialisation, window order and latent noise")
     parser.add_argument(
         "--resume", action="store_true", help="continue from MODEL.train.pt with the configs stored in it"
     )

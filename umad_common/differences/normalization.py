@@ -25,8 +25,8 @@ unlike clipping at q, the order of the strongest responses is kept (no ties at t
 metric's q lands on the same 0.5, so fused metrics are on a common scale.
 
 The calibration file (JSON, stored beside the model files) holds q per calibration key plus how it
-was made; keys are metric names (`abs`, `mse`, `ssim`, `perceptual`, `temporal`) and
-`perceptual/vgg16` for the ImageNet extractor.
+was made; keys are the metrics' `calibration_key`s: their names in `METRICS`, `perceptual/vgg16`
+for the ImageNet extractor, and a user's own metric's `name` (else its class name).
 """
 
 from __future__ import annotations
