@@ -162,7 +162,8 @@ def test_perceptual_and_mnad_forward_on_the_gpu_match_the_cpu():
 @needs_cuda
 @pytest.mark.cuda
 def test_world_model_trains_on_the_gpu_like_on_the_cpu(tmp_path):
-    from umad_common.training.train_world_model import TrainConfig, train_world_model
+    from umad_common.training.train_world_model import train_world_model
+    from umad_common.training.world_model_step import TrainConfig
 
     for i in range(3):
         write_drive(tmp_path / "bench" / "normal" / f"Scenario_n{i}", frames=12, seed=i)

@@ -18,7 +18,8 @@ from tests.conftest import REPO, umad_env
 from tests.test_world_model import TINY, write_drive
 from umad_common.models.world_model import WorldModelConfig, load_world_model, save_world_model
 from umad_common.training.distributed import Rank, run_processes
-from umad_common.training.train_world_model import TrainConfig, train_world_model
+from umad_common.training.train_world_model import train_world_model
+from umad_common.training.world_model_step import TrainConfig
 
 TIMING_KEYS = ("train_seconds", "samples_per_second", "command")  # what differs between two runs of one training
 

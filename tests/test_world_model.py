@@ -419,7 +419,8 @@ def tiny_benchmark(tmp_path_factory):
 
 def test_training_writes_weights_is_deterministic_and_resumes(tiny_benchmark, tmp_path, monkeypatch):
     from umad_common.training import train_world_model as training
-    from umad_common.training.train_world_model import TrainConfig, train_world_model
+    from umad_common.training.train_world_model import train_world_model
+    from umad_common.training.world_model_step import TrainConfig
 
     def train(out, epochs, resume=False):
         return train_world_model(
@@ -461,7 +462,8 @@ def test_training_writes_weights_is_deterministic_and_resumes(tiny_benchmark, tm
 def test_a_mirrored_window_is_the_drive_mirrored_in_the_world():
     """Mirroring a training window equals projecting the mirrored world: the lidar of the cloud with
     y negated, the camera and the route map flipped, the steering negated; twice is the identity."""
-    from umad_common.training.train_world_model import TrainConfig, mirror_window
+    from umad_common.training.world_model_data import mirror_window
+    from umad_common.training.world_model_step import TrainConfig
 
     config = WorldModelConfig(lidar_rows=64, lidar_width=256)
     rng = np.random.default_rng(0)
@@ -489,13 +491,8 @@ def test_a_relit_window_keeps_its_scene_and_puts_every_frame_under_the_same_ligh
     """Re-lighting maps each colour value through one table per channel for the whole window: the
     identity light changes nothing, equal pixels stay equal across frames, order within a channel is
     kept, brighter gains give brighter frames, and only the camera changes."""
-    from umad_common.training.train_world_model import (
-        DriveArrays,
-        Light,
-        TrainConfig,
-        observation_batch,
-        relight_window,
-    )
+    from umad_common.training.world_model_data import DriveArrays, Light, observation_batch, relight_window
+    from umad_common.training.world_model_step import TrainConfig
 
     rng = np.random.default_rng(3)
     rgb = rng.integers(0, 256, (4, 6, 8, 3), dtype=np.uint8)
@@ -532,7 +529,7 @@ def test_a_relit_window_keeps_its_scene_and_puts_every_frame_under_the_same_ligh
 
 
 def test_training_rollouts_start_from_consecutive_posterior_states_and_match_their_targets():
-    from umad_common.training.train_world_model import (
+    from umad_common.training.world_model_step import (
         TrainConfig,
         open_loop_predictions,
         prediction_targets,
@@ -577,7 +574,7 @@ def test_evaluation_reports_psnr_per_step_and_anomaly_road_ratio(tiny_benchmark)
 def test_evaluation_predictions_are_the_prior_rolled_from_k_steps_back(tiny_benchmark):
     from umad_common.datasets.drive import label_free_drive
     from umad_common.training.evaluate_world_model import filter_drive, predict_drive
-    from umad_common.training.train_world_model import load_drive
+    from umad_common.training.world_model_data import load_drive
 
     model = tiny_model(ground_flow=True)
     drive = load_drive(label_free_drive(tiny_benchmark / "normal" / "Scenario_n0"), model.config)
@@ -697,7 +694,8 @@ def test_a_world_model_saved_before_the_lidar_head_loads_without_one(tmp_path):
 
 
 def test_fitting_a_lidar_head_leaves_every_other_weight_as_it_was(tiny_benchmark, tmp_path):
-    from umad_common.training.train_world_model import TrainConfig, fit_lidar_head
+    from umad_common.training.fit_lidar_head import fit_lidar_head
+    from umad_common.training.world_model_step import TrainConfig
 
     base = tmp_path / "base"
     save_world_model(tiny_model(), base, {"train_config": {"sequence_length": 4, "batch_size": 2, "holdout": 1}})
@@ -718,7 +716,8 @@ def test_fitting_a_lidar_head_leaves_every_other_weight_as_it_was(tiny_benchmark
 
 def test_joint_training_learns_the_lidar_view_and_the_evaluation_reports_its_range_error(tiny_benchmark, tmp_path):
     from umad_common.training.evaluate_world_model import evaluate_world_model
-    from umad_common.training.train_world_model import TrainConfig, train_world_model
+    from umad_common.training.train_world_model import train_world_model
+    from umad_common.training.world_model_step import TrainConfig
 
     record = train_world_model(
         tiny_benchmark,

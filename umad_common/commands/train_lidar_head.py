@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     training_inputs(args.data, args.out, "", args.topics)
     model_file(args.world_model, "--world-model", "world model")
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see `umad train world-model`
-    from umad_common.training.train_world_model import fit_lidar_head
+    from umad_common.training.fit_lidar_head import fit_lidar_head
 
     if args.epochs < 1:
         raise SystemExit(f"--epochs is {args.epochs}; expected at least 1")

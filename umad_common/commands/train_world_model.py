@@ -90,7 +90,7 @@ def configs_of(args: argparse.Namespace):
     """(model config, train config, epochs, seed) the command trains with: the code's defaults, or the
     `--config` file's, with the flags given on the command line on top."""
     from umad_common.models.world_model import WorldModelConfig
-    from umad_common.training.train_world_model import TrainConfig
+    from umad_common.training.world_model_step import TrainConfig
 
     model_config, train, epochs, seed = WorldModelConfig(), TrainConfig(), DEFAULT_EPOCHS, 0
     if args.config is not None:

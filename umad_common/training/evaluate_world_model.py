@@ -27,7 +27,8 @@ import torch
 
 from umad_common.datasets.drive import Drive, find_drives, label_free_drive, normal_root, open_drive
 from umad_common.models.world_model import State, WorldModel
-from umad_common.training.train_world_model import DriveArrays, load_drive, observation_batch, psnr, scale_speed
+from umad_common.training.world_model_data import DriveArrays, load_drive, observation_batch, scale_speed
+from umad_common.training.world_model_step import psnr
 
 ROAD_TAGS = (1, 24)
 
