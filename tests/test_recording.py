@@ -24,7 +24,7 @@ from umad_common.dataflow.api.messages import Message, decode, encode
 from umad_common.dataflow.record.mcap_log import describe_loss, read_log, read_metadata, recording_outcome
 from umad_common.dataflow.record.recorder import Recording
 from umad_common.dataflow.transport.bus import RECORDER, Keys, open_client, open_hub
-from umad_common.dataflow.transport.payload_ring import PayloadRing
+from umad_common.dataflow.transport.planes.ring import PayloadRing
 
 FRAMES = 60  # per drive: at 60 a recorder without flow control lost 55 of 122 camera frames this way
 NICE = 10  # the graph's priority below the hogs'

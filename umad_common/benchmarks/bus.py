@@ -7,9 +7,9 @@ machine busy with other work both sides compete for the CPU on the same terms.
 The relay reads every byte of each frame (`checksum`), as a real operator reads its input.
 
 The bus runs four times at window 8: as graphs run on x86 (payloads through the publishers'
-shared-memory rings, Zenoh carrying references: `payload_ring.py`; replicas linked directly, not
+shared-memory rings, Zenoh carrying references: `planes/ring.py`; replicas linked directly, not
 through the hub), with `shared_payloads: zenoh_shm` (payloads in Zenoh's shared memory, as on other
-CPUs: `shm_payloads.py`), with `shared_payloads: false` (every payload through Zenoh as it is), and
+CPUs: `planes/zenoh_shm.py`), with `shared_payloads: false` (every payload through Zenoh as it is), and
 with `direct_links: false` (every message through the hub). Their ratios are what the rings, Zenoh's
 shared memory and the direct links buy. `--against dora`: the same relay as a dora-rs dataflow
 (`dora_relay.py`), run right after the bus.

@@ -78,9 +78,9 @@ class ArrivalListener:
 
     def _connect(self) -> None:
         from umad_common.dataflow.transport.bus import Keys, open_client
-        from umad_common.dataflow.transport.payload_ring import PayloadReader
+        from umad_common.dataflow.transport.planes import open_plane
 
-        self.reader = PayloadReader()
+        self.plane = open_plane()
         self.session = open_client(self.hub, cancel=self.stop)
         if self.session is None:
             return
@@ -95,7 +95,7 @@ class ArrivalListener:
 
         def on_sample(sample) -> None:
             arrived = time.monotonic()
-            payload = self.reader.take(sample.payload.to_bytes())
+            payload = self.plane.take(sample.payload.to_bytes())
             msg = None if payload is None else decode(payload)
             with self.arrivals.lock:
                 if msg is None:
@@ -115,7 +115,7 @@ class ArrivalListener:
             from umad_common.dataflow.transport.bus import close_session
 
             close_session(self.session)
-            self.reader.close()
+            self.plane.close()
         return self.arrivals
 
 

@@ -32,7 +32,7 @@ from umad_common.dataflow.api.operator import Operator, Source, UnknownOperatorE
 from umad_common.dataflow.api.pacing import SourceParams
 from umad_common.dataflow.transport.bus import DEFAULT_HUB, TlsConfig
 from umad_common.dataflow.transport.certificates import bundle_paths, operator_identity
-from umad_common.dataflow.transport.shm_payloads import SharedPayloads
+from umad_common.dataflow.transport.planes import PLANES, SharedPayloads
 
 
 class TlsSpec(BaseModel):
@@ -101,7 +101,7 @@ class GraphSpec(BaseModel):
         description="large payloads are written once into shared memory on the publisher's host: on x86 into "
         "a ring of the publisher's, Zenoh carrying a reference (subscribers on other hosts fetch them), on "
         "other CPUs into Zenoh's shared memory; zenoh_shm: Zenoh's shared memory on every CPU; false: every "
-        "payload through Zenoh as it is",
+        f"payload through Zenoh as it is; or a plane's name ({', '.join(PLANES)}: transport/planes)",
     )
     direct_links: bool = Field(
         True,

@@ -39,7 +39,7 @@ from umad_common.dataflow.launch.report import ProgressLine, summary_table
 from umad_common.dataflow.record.mcap_log import describe_loss
 from umad_common.dataflow.record.recorder import Recording
 from umad_common.dataflow.transport.bus import HubJoinError, Keys, answer, cleanup_stale_shm, close_session, open_client
-from umad_common.dataflow.transport.payload_ring import SWEPT_BY_LAUNCHER, remove_stale_rings
+from umad_common.dataflow.transport.planes.ring import SWEPT_BY_LAUNCHER, remove_stale_rings
 
 log = logging.getLogger("umad.launch")
 STOP_GRACE_S = 10.0  # a graph that finished: its idle replicas get this long to exit on SIGTERM

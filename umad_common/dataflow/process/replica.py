@@ -20,7 +20,7 @@ from umad_common.dataflow.process.runtime import OperatorRuntime
 from umad_common.dataflow.record.mcap_log import LogError
 from umad_common.dataflow.transport.bus import HubJoinError, ShutdownSignal, close_session, open_client
 from umad_common.dataflow.transport.certificates import add_certificate_arguments, operator_identity
-from umad_common.dataflow.transport.payload_ring import on_this_host
+from umad_common.dataflow.transport.planes import on_this_host
 
 log = logging.getLogger("umad.runtime")
 

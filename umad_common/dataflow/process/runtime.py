@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import queue
 import threading
 import time
@@ -68,8 +67,7 @@ from umad_common.dataflow.process.control import apply_command
 from umad_common.dataflow.process.frame_processing import FrameProcessor
 from umad_common.dataflow.process.source_driver import SourceDriver
 from umad_common.dataflow.transport.bus import Keys, answer
-from umad_common.dataflow.transport.payload_ring import SWEPT_BY_LAUNCHER, PayloadReader, PayloadRing, fetch
-from umad_common.dataflow.transport.shm_payloads import DEFAULT_POOL_MIB, ZenohShmPayloads, payload_plane
+from umad_common.dataflow.transport.planes import PayloadPlane, open_plane, payload_plane
 
 log = logging.getLogger("umad.runtime")
 
@@ -82,22 +80,22 @@ BAD_MESSAGE_LOG_INTERVAL_S = 5.0
 
 class Received(NamedTuple):
     """One input message as the subscriber took it: decoded at once, its arrays views on the bytes
-    copied out of the publisher's payload ring or out of what Zenoh delivered, so a busy operator's
-    queue never holds shared memory a publisher is about to reuse. A payload the ring could not
-    give (its publisher runs on another host) stays a reference until the transform loop fetches it."""
+    copied out of the publisher's payload plane or out of what Zenoh delivered, so a busy operator's
+    queue never holds shared memory a publisher is about to reuse. A payload the plane could not
+    give (its publisher runs on another host) stays as received until the transform loop fetches it."""
 
     port: str
     key: str
-    message: Message | MessageError | bytes  # decoded, refused, or a reference still to fetch
+    message: Message | MessageError | bytes  # decoded, refused, or a payload still to fetch
     sent: float | None  # the producer's put, from the sample's timestamp (wall clock, seconds)
     arrived: float  # wall clock
 
     @classmethod
-    def take(cls, port: str, sample: zenoh.Sample, reader: PayloadReader) -> Received:
+    def take(cls, port: str, sample: zenoh.Sample, plane: PayloadPlane) -> Received:
         stamp = sample.timestamp
         sent = None if stamp is None else stamp.get_time_as_ntp64().as_secs_f64()
         raw = sample.payload.to_bytes()
-        payload = reader.take(raw)
+        payload = plane.take(raw)
         message = raw if payload is None else decode_or_refuse(payload)
         return cls(port, str(sample.key_expr), message, sent, time.time())
 
@@ -154,10 +152,11 @@ class OperatorRuntime:
         self.ctl_q: queue.Queue = queue.Queue()
         self.members = Membership()
         self.resend_requests: list[dict] = []  # sources: frames a restarted ordered operator needs again
-        plane = payload_plane(graph.spec.shared_payloads if hub_on_this_host else False)
-        self.ring = PayloadRing(self.keys.payload(op_id)) if plane == "ring" else None
-        self.shm = ZenohShmPayloads(graph.spec.shm_pool_mib or DEFAULT_POOL_MIB) if plane == "zenoh_shm" else None
-        self.reader = PayloadReader()
+        self.payloads = open_plane(  # puts with this replica's plane, takes what any plane put
+            payload_plane(graph.spec.shared_payloads if hub_on_this_host else False),
+            self.keys.payload(op_id),
+            graph.spec.shm_pool_mib,
+        )
         self.publishers = {
             out: session.declare_publisher(self.keys.data(op_id, out), congestion_control=zenoh.CongestionControl.BLOCK)
             for out in self.cls.outputs
@@ -212,7 +211,7 @@ class OperatorRuntime:
             for source in self.spec.sources_of(port):
                 self.subscribe(
                     self.keys.pattern(source),
-                    lambda s, port=port: self.data_q.put(Received.take(port, s, self.reader)),
+                    lambda s, port=port: self.data_q.put(Received.take(port, s, self.payloads)),
                 )
 
     def _subscribe_service(self) -> None:
@@ -225,8 +224,7 @@ class OperatorRuntime:
         if isinstance(self.operator, Source):  # a restarted ordered operator's rewind
             self.subscribe(self.keys.resend(self.op_id), lambda s: self._service_event("resend", s))
         self.subscribe(self.keys.left_all, lambda s: self._service_event("left", s))
-        if self.ring is not None:  # subscribers that cannot map the ring fetch payloads here
-            self._subscribers.append(self.session.declare_queryable(self.ring.fetch_key, self.ring.serve))
+        self._subscribers.extend(self.payloads.declare(self.session))  # answers subscribers that cannot reach the plane
         self._subscribers.append(
             self.session.liveliness().declare_subscriber(
                 self.keys.live_all, lambda s: self._service_event("live", s), history=True
@@ -328,17 +326,18 @@ class OperatorRuntime:
             if self._cpu_from is not None:
                 self.stats.process_cpu_s = time.process_time() - self._cpu_from
             snap = self.stats.snapshot(self.data_q.qsize())
-            self.reader.forget_gone()
+            self.payloads.forget_gone()
             self.stats_pub.put(json.dumps({"op": self.op_id, "replica": self.replica_id, **snap}).encode())
 
     def _message_of(self, received: Received) -> Message | MessageError | None:
-        """The message; a reference to a ring this host cannot map is fetched from its publisher. A
+        """The message; a payload this host's planes cannot read is fetched from its publisher. A
         payload nobody has any more is counted in `lost_payloads` and left to the source's
         retransmission, which brings the frame again; in live mode, where nothing is re-sent, its
         frame is passed over at its deadline (`delivery/live.py`)."""
         if not isinstance(received.message, bytes):
             return received.message
-        payload = fetch(self.session, self.keys.payload(self.keys.parse_data(received.key)[0]), received.message)
+        producer = self.keys.payload(self.keys.parse_data(received.key)[0])
+        payload = self.payloads.fetch(self.session, producer, received.message)
         if payload is None:
             self.stats.lost_payloads += 1
             self.log.warning(
@@ -391,11 +390,7 @@ class OperatorRuntime:
         """Put one frame's payloads; `count=False` for a retransmission, which is no new frame. Each
         carries the put's time (a Zenoh timestamp, not part of the payload) for `transport_ms`."""
         for port, payload in payloads:
-            if self.ring is not None:
-                payload = self.ring.pack(payload)
-            elif self.shm is not None:
-                payload = self.shm.pack(payload)
-            self.publishers[port].put(payload, timestamp=self.session.new_timestamp())
+            self.publishers[port].put(self.payloads.put(payload), timestamp=self.session.new_timestamp())
         if count:
             self.stats.frames_out += 1
 
@@ -428,9 +423,7 @@ class OperatorRuntime:
             self.session.put(self.keys.left(self.op_id, self.replica_id), encode_goodbye(self.op_id, self.replica_id))
             token.undeclare()
             self.publish_stats(force=True)
-            self.reader.close()
-            if self.ring is not None:
-                self.ring.close(unlink=SWEPT_BY_LAUNCHER not in os.environ)
+            self.payloads.close()
         if not isinstance(self.operator, Source):
             self.log.info(
                 "stopped after %d frames (%d errors, %d bad messages)",

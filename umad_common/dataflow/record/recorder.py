@@ -8,8 +8,9 @@ of other frames than the user asked for. Three rules keep it whole:
     a lossless source keeps the frame in flight until then (`SourceDriver` waits for the acks of
     the sinks and of a live recorder). A slow recorder slows the graph; it never falls so far
     behind that a publisher's payload ring overwrites a payload it has not copied;
-  - the Zenoh callback only copies a payload out of its publisher's ring (or queues a fetch from a
-    publisher on another host); decoding, compressing and writing happen on the writer thread;
+  - the Zenoh callback only copies a payload out of its publisher's payload plane (or queues a
+    fetch from a publisher on another host); decoding, compressing and writing happen on the writer
+    thread;
   - what is lost all the same (a publisher killed before its payload was fetched) is counted per
     channel, and so are the frames a channel lacks when the frame was closed without it. `close`
     writes both into the log's `umad_recording` metadata, which `umad sweep` and `umad eval` read
@@ -36,7 +37,7 @@ from umad_common.dataflow.api.graph import Graph
 from umad_common.dataflow.delivery.service_messages import ServiceMessageError, encode_ack, read_ack
 from umad_common.dataflow.record.mcap_log import RECORDING_METADATA, McapRecorder
 from umad_common.dataflow.transport.bus import RECORDER, Keys
-from umad_common.dataflow.transport.payload_ring import PayloadReader, fetch
+from umad_common.dataflow.transport.planes import open_plane
 
 log = logging.getLogger("umad.record")
 
@@ -68,7 +69,7 @@ class Recording:
         self._outputs = {op: [self.keys.data(op, out) for out in cls.outputs] for op, cls in graph.classes.items()}
         self._live: dict[str, set[str]] = {}  # op -> its live replicas, once seen
         self._session = session
-        self._payloads = PayloadReader()
+        self._payloads = open_plane()  # publishes nothing, takes what every plane puts
         self._writes: queue.Queue = queue.Queue()  # ("data" | "ack", key, bytes) | None to stop
         self._fetches: queue.Queue = queue.Queue()  # (key, reference) of payloads on another host's ring
         self._pending: dict[tuple[str, int], set[str]] = defaultdict(set)  # frame -> channels written
@@ -133,7 +134,7 @@ class Recording:
                 return
             key, reference = item
             producer = self.keys.payload(self.keys.parse_data(key)[0])
-            payload = None if self._closing.is_set() else fetch(self._session, producer, reference)
+            payload = None if self._closing.is_set() else self._payloads.fetch(self._session, producer, reference)
             if payload is None:
                 self._lose(key)
             else:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import zenoh
 
-from umad_common.dataflow.transport.payload_ring import remove_stale_rings
+from umad_common.dataflow.transport.planes.ring import remove_stale_rings
 
 DEFAULT_HUB = "tcp/127.0.0.1:7447"
 DIRECT_LINK_LISTEN = "tcp/127.0.0.1:0"  # a peer replica's own endpoint for its direct links (any free port)
@@ -309,7 +309,7 @@ class Keys:
         return f"{self.root}/_live/**"
 
     def payload(self, op: str) -> str:
-        """Under which prefix `op`'s replicas answer for payloads of their rings (`payload_ring.fetch_key`)."""
+        """Under which prefix `op`'s replicas answer for payloads of their rings (`planes.ring.fetch_key`)."""
         return f"{self.root}/_payload/{op}"
 
     def stats(self, op: str, replica: str) -> str:

@@ -1,5 +1,4 @@
-"""Large payloads through Zenoh's own shared memory (`zenoh.shm`), and which same-host data plane a
-replica uses.
+"""Plane `zenoh_shm`: large payloads through Zenoh's own shared memory (`zenoh.shm`).
 
 A publisher's `ZenohShmPayloads` owns a pool (a `ShmProvider`); `pack(payload)` writes a large
 payload into a buffer of the pool and hands Zenoh that buffer. Subscribers on this host receive the
@@ -7,36 +6,28 @@ buffer itself (Zenoh passes its handle, not its bytes), subscribers on other hos
 recorder the bytes over the network, as for any payload: the bytes are the publisher's, so
 recordings and replays are unchanged, and nobody needs to fetch. A buffer returns to the pool when
 the last subscriber dropped its sample; a pool with no room left (subscribers holding every buffer)
-sends that payload through the sockets instead of blocking the publisher.
+sends that payload through the sockets instead of blocking the publisher. The pool is made at the
+first large payload, so a replica that publishes with another plane (or only takes) makes none.
 
 What the Python API of Zenoh 1.10 allows: a buffer is written from a `bytes` object and read into
 one (`ZShmMut.__setitem__`, `ZBytes.to_bytes`), with no memoryview on either side. So a payload is
 copied into the pool once and out of it once; `messages.decode` then reads the arrays in place, as
 views on the bytes taken. Zenoh keeps each buffer's reference count with atomics, which is correct
-on every CPU.
-
-The choice (`payload_plane`): the graph's `shared_payloads` true takes the project's payload ring
-(`payload_ring.py`) on x86, where it measures faster (docs/benchmarks.md: the payload planes), and
-Zenoh's shared memory on any other CPU, where the ring's overwrite check is not sound;
-`zenoh_shm` takes Zenoh's shared memory on every CPU; false sends every payload through Zenoh as
-it is.
+on every CPU, so this plane is the ring's stand-in where the ring's overwrite check is not sound
+(`planes.payload_plane`).
 """
 
 from __future__ import annotations
 
 import logging
-import platform
-from typing import Literal
 
 import zenoh
 from zenoh.shm import GarbageCollect, ShmProvider
 
-from umad_common.dataflow.transport.payload_ring import INLINE_BELOW, ring_is_correct_here
+from umad_common.dataflow.transport.planes import INLINE_BELOW
 
 DEFAULT_POOL_MIB = 64  # a source's window of 1 MiB frames several times over, per publishing replica
 log = logging.getLogger("umad.payloads")
-
-SharedPayloads = bool | Literal["zenoh_shm"]  # the graph's `shared_payloads`
 
 
 class ZenohShmPayloads:
@@ -67,17 +58,29 @@ class ZenohShmPayloads:
         return zenoh.ZBytes(buffer)
 
 
-def payload_plane(shared_payloads: SharedPayloads, machine: str | None = None) -> Literal["ring", "zenoh_shm"] | None:
-    """Which same-host data plane a replica's large payloads take (None: as they are, through
-    Zenoh); says in one line when this CPU rules the ring out."""
-    if shared_payloads is False:
+class ZenohShmPlane:
+    """Plane `zenoh_shm` (`planes.PayloadPlane`): puts into this replica's `ZenohShmPayloads`. Zenoh
+    delivers the bytes themselves, so taking is the identity and nothing is ever fetched."""
+
+    name = "zenoh_shm"
+
+    def __init__(self, prefix: str = "", pool_mib: int | None = None, publishing: bool = True):
+        self.payloads = ZenohShmPayloads(pool_mib or DEFAULT_POOL_MIB) if publishing else None
+
+    def put(self, payload: bytes) -> zenoh.ZBytes | bytes:
+        return payload if self.payloads is None else self.payloads.pack(payload)
+
+    def declare(self, session: zenoh.Session) -> list:
+        return []
+
+    def take(self, raw: bytes) -> bytes | None:
+        return raw
+
+    def fetch(self, session: zenoh.Session, prefix: str, raw: bytes) -> bytes | None:
         return None
-    if shared_payloads == "zenoh_shm":
-        return "zenoh_shm"
-    if ring_is_correct_here(machine):
-        return "ring"
-    log.info(
-        "payload rings need x86's memory order and this CPU is %s: large payloads go through Zenoh's shared memory",
-        machine or platform.machine(),
-    )
-    return "zenoh_shm"
+
+    def forget_gone(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass

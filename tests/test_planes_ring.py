@@ -1,9 +1,9 @@
-"""The same-host data plane: payloads written once into a publisher's shared-memory ring, references
-through Zenoh, fetched from the publisher where the ring cannot be mapped."""
+"""Plane `ring`: payloads written once into a publisher's shared-memory ring, references through
+Zenoh, fetched from the publisher where the ring cannot be mapped. What every plane does alike is
+in test_planes.py."""
 
 from __future__ import annotations
 
-import logging
 import multiprocessing
 import os
 import signal
@@ -12,32 +12,24 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
-import yaml
-import zenoh
 
 from tests.conftest import REPO, run_umad, start_umad, umad_env
 from tests.test_distributed import frames_done_by
+from tests.test_planes import large_toy_graph, payload
 from tests.test_runtime_e2e import assert_exactly_once, sink_lines, toy_graph
-from umad_common.dataflow.api.messages import Message, MessageError, decode, encode
+from umad_common.dataflow.api.messages import MessageError, decode
 from umad_common.dataflow.record.mcap_log import read_log
 from umad_common.dataflow.transport.bus import open_client, open_hub
-from umad_common.dataflow.transport.payload_ring import (
-    INLINE_BELOW,
+from umad_common.dataflow.transport.planes import INLINE_BELOW
+from umad_common.dataflow.transport.planes.ring import (
     RING_DIR,
     PayloadReader,
     PayloadRing,
     fetch,
     is_reference,
-    on_this_host,
     remove_stale_rings,
 )
-from umad_common.dataflow.transport.shm_payloads import ZenohShmPayloads, payload_plane
-
-
-def payload(size: int, fill: int = 0) -> bytes:
-    return encode(Message("run", fill, 0, "test", {}, {"x": np.full(size, fill, np.uint8)}))
 
 
 def test_a_large_payload_travels_as_a_reference_and_comes_back_byte_for_byte(tmp_path):
@@ -135,23 +127,12 @@ def test_a_payload_overwritten_while_a_reader_copies_it_is_never_accepted_torn(t
 
 
 @pytest.mark.parametrize("machine", ["aarch64", "arm64", "riscv64", "ppc64le"])
-def test_on_a_cpu_without_x86_memory_order_no_ring_is_made(tmp_path, monkeypatch, machine, caplog):
+def test_on_a_cpu_without_x86_memory_order_no_ring_is_made(tmp_path, monkeypatch, machine):
     monkeypatch.setattr("platform.machine", lambda: machine)
     ring = PayloadRing("umad/t", tmp_path)
     large = payload(1 << 20)
     assert ring.pack(large) == large and not list(tmp_path.iterdir())
     assert machine in ring.disabled_because
-    with caplog.at_level(logging.INFO, "umad.payloads"):
-        assert payload_plane(True) == "zenoh_shm"
-    assert caplog.messages == [
-        f"payload rings need x86's memory order and this CPU is {machine}: "
-        "large payloads go through Zenoh's shared memory"
-    ]
-    assert payload_plane("zenoh_shm") == "zenoh_shm" and payload_plane(False) is None
-
-
-def test_on_x86_the_ring_is_the_same_host_plane():
-    assert payload_plane(True, "x86_64") == "ring" and payload_plane("zenoh_shm", "x86_64") == "zenoh_shm"
 
 
 def test_a_reader_that_cannot_map_the_ring_fetches_from_the_publisher(tmp_path, hub_endpoint):
@@ -189,22 +170,6 @@ def test_rings_of_dead_processes_are_removed_and_live_ones_kept(tmp_path):
     assert live.exists()
 
 
-def test_a_replica_whose_hub_is_on_another_host_publishes_through_zenoh():
-    assert on_this_host("tcp/127.0.0.1:7447") and on_this_host("tls/localhost:7447")
-    assert not on_this_host("tcp/192.0.2.1:7447")  # TEST-NET-1: never an address of this machine
-
-
-def large_toy_graph(tmp_path: Path, hub: str, shared_payloads: bool | str = True, **kw) -> Path:
-    """The toy graph with 400 KB frames: every frame message goes through the rings (or, with
-    `shared_payloads: zenoh_shm`, Zenoh's shared memory)."""
-    path = toy_graph(tmp_path, hub, **kw)
-    data = yaml.safe_load(path.read_text())
-    data["operators"][0]["params"]["size"] = 100_000
-    data["shared_payloads"] = shared_payloads
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
-
-
 def test_a_recording_holds_the_payloads_and_replays_byte_for_byte(tmp_path, hub_endpoint):
     graph = large_toy_graph(tmp_path, hub_endpoint, frames=12)
     first, second = tmp_path / "first.mcap", tmp_path / "second.mcap"
@@ -222,72 +187,6 @@ def test_a_recording_holds_the_payloads_and_replays_byte_for_byte(tmp_path, hub_
 
     assert sink_payloads(first) == sink_payloads(second)
     assert not remove_stale_rings()  # every replica unlinked its ring on the way out
-
-
-def test_payloads_in_zenohs_shared_memory_arrive_once_and_record_the_bytes_the_rings_record(tmp_path, hub_endpoint):
-    logs = {}
-    for plane in (True, "zenoh_shm"):
-        folder = tmp_path / str(plane)
-        folder.mkdir()
-        graph = large_toy_graph(folder, hub_endpoint, shared_payloads=plane, frames=12)
-        logs[plane] = folder / "run.mcap"
-        rings_before = set(RING_DIR.glob("umad-*.ring"))
-        result = run_umad("launch", str(graph), "--record", str(logs[plane]), timeout=120)
-        assert result.returncode == 0, result.stdout
-        assert_exactly_once(folder, 12)
-        if plane == "zenoh_shm":
-            assert set(RING_DIR.glob("umad-*.ring")) <= rings_before  # no replica made a ring
-
-    def source_payloads(path):
-        return sorted(r.data for r in read_log(path) if r.topic.startswith("umad/toy/source/"))
-
-    def sink_arrays(path):  # the sink's meta names its log file, which differs
-        sink = (decode(r.data) for r in read_log(path) if r.topic.startswith("umad/toy/sink/"))
-        return sorted((m.run, m.seq, m.arrays["x"].tobytes()) for m in sink if "x" in m.arrays)
-
-    assert source_payloads(logs[True]) == source_payloads(logs["zenoh_shm"])
-    assert sink_arrays(logs[True]) == sink_arrays(logs["zenoh_shm"]) != []
-
-
-def test_a_payload_in_zenohs_shared_memory_reaches_a_subscriber_whole_and_a_full_pool_sends_it_as_it_is(
-    hub_endpoint,
-):
-    hub = open_hub(hub_endpoint)
-    publisher, subscriber = open_client(hub_endpoint), open_client(hub_endpoint)
-    received = []
-    try:
-        listener = subscriber.declare_subscriber("umad/t/x", lambda sample: received.append(sample.payload.to_bytes()))
-        put = publisher.declare_publisher(  # as the runtime's: a busy machine must not drop a sample
-            "umad/t/x", congestion_control=zenoh.CongestionControl.BLOCK
-        )
-        deadline = time.monotonic() + 10
-        while not put.matching_status.matching and time.monotonic() < deadline:
-            time.sleep(0.01)
-        shm = ZenohShmPayloads(pool_mib=4)
-        sent = [payload(1 << 20, fill) for fill in range(6)]
-        packed = [shm.pack(p) for p in sent]  # held here, so the pool (3 such buffers) fills up
-        assert shm.through_sockets > 0 and packed[-1] is sent[-1]
-        assert shm.pack(payload(100)) == payload(100)  # small ones travel as they are
-        for each in packed:
-            put.put(each)
-        deadline = time.monotonic() + 30
-        while len(received) < len(sent) and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert received == sent
-        listener.undeclare()
-    finally:
-        for session in (publisher, subscriber, hub):
-            session.close()
-
-
-def test_without_room_for_a_zenoh_pool_payloads_go_as_they_are(monkeypatch):
-    def no_room(size):
-        raise zenoh.ZError("no space left on device")
-
-    monkeypatch.setattr("umad_common.dataflow.transport.shm_payloads.ShmProvider.default_backend", no_room)
-    shm = ZenohShmPayloads(pool_mib=64)
-    large = payload(1 << 20)
-    assert shm.pack(large) is large and "no 64 MiB pool" in shm.disabled_because
 
 
 def test_a_ring_left_to_the_launcher_still_gives_its_payloads_after_its_publisher_closed(tmp_path):

@@ -1,9 +1,9 @@
-"""The same-host data plane: a large payload is written once into a shared-memory ring its publisher
+"""The payload ring (plane `ring`): a large payload is written once into a shared-memory ring its publisher
 owns, and Zenoh carries only a reference to it (a few dozen bytes) through the hub.
 
-Why: a 1 MiB message through Zenoh costs its publisher's put, the hub's routing and the
-subscriber's take, about 1 ms of CPU per hop (measured by `umad bench bus`); with the ring a hop
-costs one copy in, one copy out and a small message.
+Why: a large message through Zenoh costs its publisher's put, the hub's routing and the
+subscriber's take, each a copy of the whole payload (`umad bench bus` measures them); with the ring
+a hop costs one copy in, one copy out and a small message.
 
 A ring is a file under /dev/shm named after its publisher's pid:
 
@@ -15,7 +15,7 @@ payload out and then finds `reserved <= start + capacity` knows nothing overwrot
 That check relies on x86's memory order (stores become visible in program order, loads are not
 reordered with older loads), which Python cannot ask for with fences; on any other CPU
 (`RING_CPUS`) no ring is made and large payloads go through Zenoh's shared memory instead
-(`shm_payloads.py`). Subscribers copy a payload out the moment it arrives; the ring holds at least
+(`zenoh_shm.py`). Subscribers copy a payload out the moment it arrives; the ring holds at least
 `SLACK_PAYLOADS` of the largest payload so far (it grows into a new file when a larger one comes),
 far more than the frames a source keeps in flight.
 
@@ -23,6 +23,9 @@ What a reference cannot reach, the publisher still serves: a subscriber on anoth
 that copied too late) asks the publisher's queryable for the payload, answered from the last
 payloads the publisher keeps (`fetch`). The bytes a subscriber ends up with are the bytes the
 publisher wrote, so recorded logs and replays are unchanged.
+
+`RingPlane` is the plane (`planes.PayloadPlane`): a publisher's `PayloadRing`, a subscriber's
+`PayloadReader` and `fetch`.
 """
 
 from __future__ import annotations
@@ -32,7 +35,6 @@ import os
 import platform
 import re
 import secrets
-import socket
 import struct
 import threading
 from collections import OrderedDict
@@ -41,12 +43,13 @@ from pathlib import Path
 
 import zenoh
 
+from umad_common.dataflow.transport.planes import INLINE_BELOW
+
 RING_DIR = Path(os.environ.get("UMAD_RING_DIR", "/dev/shm"))  # e.g. a container whose /dev/shm is small
 SWEPT_BY_LAUNCHER = "UMAD_RINGS_SWEPT_BY_LAUNCHER"  # set in a replica's environment by the launcher, which
 #   then removes the replica's ring some time after it exited (`remove_stale_rings`), not the replica
 #   itself: the launcher's recorder may still have references to it in its queue
 REFERENCE_TAG = b"\xc1umad-ref"  # 0xc1 is never valid msgpack: a reference is never taken for a message
-INLINE_BELOW = 64 << 10  # smaller payloads travel inline: a copy through Zenoh is as cheap as a reference
 SLACK_PAYLOADS = 32  # the ring holds at least this many of its largest payload
 MIN_CAPACITY = 8 << 20
 MAX_CAPACITY = 1 << 30
@@ -67,20 +70,6 @@ def ring_is_correct_here(machine: str | None = None) -> bool:
     """Whether this CPU (`machine`: `platform.machine()`) keeps the store and load order the
     reader's overwrite check relies on."""
     return (machine or platform.machine()).lower() in RING_CPUS
-
-
-def on_this_host(endpoint: str) -> bool:
-    """Whether a hub endpoint (`tcp/HOST:PORT`) is an address of this machine: a replica that reaches
-    its hub elsewhere is a worker on another host, whose subscribers would all have to fetch its
-    payloads one by one, so it sends them through Zenoh instead."""
-    host = endpoint.partition("/")[2].rpartition(":")[0].strip("[]")
-    try:
-        for family, kind, proto, _, address in socket.getaddrinfo(host, None, type=socket.SOCK_DGRAM):
-            with socket.socket(family, kind, proto) as probe:
-                probe.bind((address[0], 0))  # only an address of this host's interfaces can be bound
-        return True
-    except OSError:
-        return False
 
 
 def is_reference(payload: bytes) -> bool:
@@ -302,3 +291,39 @@ def remove_stale_rings(directory: Path = RING_DIR, spare_pids: Collection[int] =
             path.unlink(missing_ok=True)
             removed.append(path.name)
     return removed
+
+
+class RingPlane:
+    """Plane `ring` (`planes.PayloadPlane`): puts into this replica's `PayloadRing`, takes through a
+    `PayloadReader`; its queryable serves the payloads a subscriber could not map (`fetch`)."""
+
+    name = "ring"
+
+    def __init__(
+        self, prefix: str = "", pool_mib: int | None = None, publishing: bool = True, directory: Path | None = None
+    ):
+        directory = RING_DIR if directory is None else directory
+        self.ring = PayloadRing(prefix, directory) if publishing else None
+        self.reader = PayloadReader(directory)
+
+    def put(self, payload: bytes) -> bytes:
+        return payload if self.ring is None else self.ring.pack(payload)
+
+    def declare(self, session: zenoh.Session) -> list[zenoh.Queryable]:
+        return [] if self.ring is None else [session.declare_queryable(self.ring.fetch_key, self.ring.serve)]
+
+    def take(self, raw: bytes) -> bytes | None:
+        return self.reader.take(raw)
+
+    def fetch(self, session: zenoh.Session, prefix: str, raw: bytes) -> bytes | None:
+        return fetch(session, prefix, raw) if is_reference(raw) else None
+
+    def forget_gone(self) -> None:
+        self.reader.forget_gone()
+
+    def close(self) -> None:
+        """A replica the launcher started leaves its ring's files to the launcher's sweep
+        (`SWEPT_BY_LAUNCHER`): the recorder may still copy payloads out of them."""
+        self.reader.close()
+        if self.ring is not None:
+            self.ring.close(unlink=SWEPT_BY_LAUNCHER not in os.environ)
