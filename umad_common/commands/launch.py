@@ -50,4 +50,6 @@ def run(args) -> int:
 
     from umad_common.dataflow.launch.launcher import Launcher
 
-    return Launcher(graph, Path(path), args.set, args.record, args.max_frames, args.hub).run()
+    return Launcher(
+        graph, Path(path), sets=args.set, record=args.record, max_frames=args.max_frames, hub=args.hub
+    ).run()

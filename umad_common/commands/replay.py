@@ -66,5 +66,10 @@ def run(args) -> int:
         sets += [f"{src}.pacing=realtime" for src in graph.sources()]
     print(f"{args.log}: {count} messages")
     return Launcher(
-        graph, Path(graph_path), sets, args.record, replay_log=args.log, allow_truncated=args.allow_truncated
+        graph,
+        Path(graph_path),
+        sets=sets,
+        record=args.record,
+        replay_log=args.log,
+        allow_truncated=args.allow_truncated,
     ).run()

@@ -93,6 +93,7 @@ class Launcher:
         self,
         graph: Graph,
         graph_file: Path,
+        *,
         sets: list[str] | None = None,
         record: Path | None = None,
         max_frames: int | None = None,

@@ -145,7 +145,9 @@ class OperatorRuntime:
             from umad_common.dataflow.record.log_source import LoggedSource
 
             params = self.cls.validate_params(self.spec.params)
-            self.operator: Operator = LoggedSource(replay_log, self.cls, params, context, allow_truncated)
+            self.operator: Operator = LoggedSource(
+                replay_log, self.cls, params=params, context=context, allow_truncated=allow_truncated
+            )
         else:
             self.operator = self.cls(self.spec.params, context)
         self.data_q: queue.Queue = queue.Queue(maxsize=64)
@@ -415,7 +417,7 @@ class OperatorRuntime:
         token = self.session.liveliness().declare_token(self.keys.live(self.op_id, self.replica_id))
         try:
             if isinstance(self.operator, Source):
-                SourceDriver(self, self.operator, self.graph, self.max_frames).run()
+                SourceDriver(self, self.operator, self.graph, max_frames=self.max_frames).run()
                 return
             self.log.info("ready: %s -> %s", dict(self.spec.inputs), list(self.cls.outputs))
             self._transform_loop()

@@ -68,7 +68,7 @@ class SourceDriver:
     frames sent one at a time, not by the frames a camera would send meanwhile.
     """
 
-    def __init__(self, host: SourceHost, source: Source, graph: Graph, max_frames: int | None = None):
+    def __init__(self, host: SourceHost, source: Source, graph: Graph, *, max_frames: int | None = None):
         self.host = host
         self.source = source
         if not isinstance(source.params, SourceParams):

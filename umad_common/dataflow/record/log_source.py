@@ -69,7 +69,13 @@ class LoggedSource(Source):
     """
 
     def __init__(
-        self, path: str | Path, recorded: type[Source], params: BaseModel, context: Context, allow_truncated: bool
+        self,
+        path: str | Path,
+        recorded: type[Source],
+        *,
+        params: BaseModel,
+        context: Context,
+        allow_truncated: bool,
     ):
         self.context, self.params = context, params  # the recorded source's parameters, validated
         self.path, self.allow_truncated = Path(path), allow_truncated

@@ -300,7 +300,12 @@ class RingPlane:
     name = "ring"
 
     def __init__(
-        self, prefix: str = "", pool_mib: int | None = None, publishing: bool = True, directory: Path | None = None
+        self,
+        prefix: str = "",
+        pool_mib: int | None = None,
+        publishing: bool = True,
+        *,
+        directory: Path | None = None,
     ):
         directory = RING_DIR if directory is None else directory
         self.ring = PayloadRing(prefix, directory) if publishing else None
