@@ -17,16 +17,8 @@ from pydantic import BaseModel, Field
 
 from umad_common.dataflow import Context, Output, Source, SourceFrame, SourceParams
 from umad_common.dataflow.record.log_source import recorded_frame, recorded_frames
-from umad_common.datasets.drive import (
-    UMAD_LOG_PROFILE,
-    DatasetError,
-    Drive,
-    DriveFrame,
-    drive_name,
-    find_drives,
-    mcap_profile,
-    open_drive,
-)
+from umad_common.datasets.drive import UMAD_LOG_PROFILE, DatasetError, Drive, DriveFrame, drive_name, mcap_profile
+from umad_common.datasets.formats import find_drives, open_drive
 
 ROUTE_SHAPE = (192, 192)
 

@@ -8,7 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from umad_common.benchmarks.bus import against_dora, checksum
+from umad_common.benchmarks.blobs import checksum
+from umad_common.benchmarks.bus import against_dora
 from umad_common.benchmarks.dora_relay import dora_missing, over_dora
 from umad_common.cli import main as umad_main
 

@@ -19,7 +19,8 @@ from umad_common.datasets.anovox import (
     write_benchmark_scenario,
     write_pcd,
 )
-from umad_common.datasets.drive import DatasetError, find_drives
+from umad_common.datasets.drive import DatasetError
+from umad_common.datasets.formats import find_drives
 from umad_common.datasets.synthetic.anomalies import ANOMALY_TAGS, CATEGORIES
 from umad_common.datasets.synthetic.generator import generate_benchmark, plan_benchmark
 from umad_common.datasets.synthetic.render import WEATHER_NAMES, CameraSpec

@@ -23,7 +23,7 @@ from umad_common.dataflow import Frame
 from umad_common.dataflow.api.graph import load_graph
 from umad_common.dataflow.api.messages import Message, encode
 from umad_common.dataflow.record.mcap_log import McapRecorder, read_log
-from umad_common.dataflow.record.recorder import mask_sources
+from umad_common.dataflow.record.recorder import UnknownViewsError, log_views, mask_sources
 from umad_common.datasets.synthetic.generator import generate_benchmark
 from umad_common.datasets.synthetic.scenario import FRAME_DT, SyntheticScenario
 from umad_common.refine import mask_scores, resize_nearest
@@ -31,6 +31,7 @@ from umad_common.viz.foxglove import (
     FRAME_SCORE_SCHEMA,
     SCHEMA_FOLDER,
     EgoOdometry,
+    FoxgloveViews,
     score_colour,
     vendored_schemas,
 )
@@ -73,7 +74,7 @@ def short_run(tmp_path_factory) -> tuple[Path, list, dict]:
     folder = tmp_path_factory.mktemp("foxglove")
     generate_benchmark(folder / "data", 0, 1, FRAMES, 5, (96, 64))
     frames = list(Replayer({"source": str(folder / "data" / "anomalous")}).frames())
-    recorder = McapRecorder(folder / "run.mcap", mask_sources=MASK_SOURCES)
+    recorder = McapRecorder(folder / "run.mcap", views=FoxgloveViews, mask_sources=MASK_SOURCES)
     refined_of = {}
 
     def write(producer: str, output: str, frame, arrays: dict, meta: dict | None = None) -> Message:
@@ -251,6 +252,18 @@ def test_the_mask_sources_follow_the_graph_s_wiring():
         "refine_unsup/refined": "segment_unsup/masks",
     }
     assert mask_sources(load_graph(LIVE_GRAPH)) == {"refine/refined": "segment/masks", "result/result": "segment/masks"}
+
+
+def test_a_graph_s_log_holds_the_foxglove_views_unless_it_names_others():
+    """The engine names the views (`record_views`), it does not import them: the recorder loads the
+    class the graph names, Foxglove's by default; null records none; a bad path says what it expected."""
+    graph = load_graph(DEFAULT_GRAPH)
+    assert log_views(graph) is FoxgloveViews
+    spec = graph.spec.model_copy(update={"record_views": None})
+    assert log_views(type(graph)(spec, graph.classes, graph.path)) is None
+    spec = graph.spec.model_copy(update={"record_views": "umad_common.viz.foxglove:EgoOdometry"})
+    with pytest.raises(UnknownViewsError, match="expected a LogViews subclass"):
+        log_views(type(graph)(spec, graph.classes, graph.path))
 
 
 def test_the_shipped_layout_names_views_the_shipped_graphs_record(short_run):

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from tests.conftest import free_port, run_umad
-from umad_common.datasets.drive import DatasetError, EgoState, find_drives, open_drive
+from umad_common.datasets.drive import DatasetError, EgoState
+from umad_common.datasets.formats import find_drives, open_drive
 from umad_common.datasets.recording import RecordingDrive
 from umad_common.datasets.recording_messages import Transform, quaternion_matrix
 from umad_common.datasets.recording_writers import write_foxglove_mcap, write_ros2_mcap, write_rosbag2

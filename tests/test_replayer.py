@@ -12,7 +12,8 @@ from pydantic import ValidationError
 from umad_common.dataflow.api.messages import Message, decode, encode
 from umad_common.dataflow.api.operator import Context, load_operator_class
 from umad_common.datasets.anovox import AnoVoxScenario, write_benchmark_scenario
-from umad_common.datasets.drive import DatasetError, find_drives
+from umad_common.datasets.drive import DatasetError
+from umad_common.datasets.formats import find_drives
 from umad_common.datasets.synthetic.generator import generate_benchmark
 from umad_operators.replayer import Replayer
 

@@ -572,7 +572,7 @@ def test_evaluation_reports_psnr_per_step_and_anomaly_road_ratio(tiny_benchmark)
 
 
 def test_evaluation_predictions_are_the_prior_rolled_from_k_steps_back(tiny_benchmark):
-    from umad_common.datasets.drive import label_free_drive
+    from umad_common.datasets.formats import label_free_drive
     from umad_common.training.evaluate_world_model import filter_drive, predict_drive
     from umad_common.training.world_model_data import load_drive
 

@@ -4,7 +4,7 @@ the price of the bus itself (transport, joining, acks), not of serialisation. Th
 runs in a process of its own at the operators' CPU priority (the launcher lowers theirs), so on a
 machine busy with other work both sides compete for the CPU on the same terms.
 
-The relay reads every byte of each frame (`checksum`), as a real operator reads its input.
+The relay reads every byte of each frame (`blobs.checksum`), as a real operator reads its input.
 
 The bus runs four times at window 8: as graphs run on x86 (payloads through the publishers'
 shared-memory rings, Zenoh carrying references: `planes/ring.py`; replicas linked directly, not
@@ -43,10 +43,11 @@ import numpy as np
 import zenoh
 from pydantic import Field
 
+from umad_common.benchmarks.blobs import checksum
 from umad_common.benchmarks.graphs import run_bench_graph
 from umad_common.dataflow import Frame, Input, Operator, Output, Source, SourceFrame, SourceParams
 from umad_common.dataflow.api.messages import Message, decode, encode
-from umad_common.dataflow.launch.launcher import OPERATOR_NICENESS
+from umad_common.dataflow.launch.replicas import OPERATOR_NICENESS
 from umad_common.dataflow.process.allocator import keep_freed_memory
 from umad_common.dataflow.transport.bus import open_client, open_hub
 from umad_common.dataflow.transport.certificates import HUB, bundle_paths, make_certificates, operator_identity
@@ -66,14 +67,6 @@ class BlobSource(Source):
         blob = np.random.default_rng(0).integers(0, 255, self.params.size_bytes, dtype=np.uint8)
         for seq in range(self.params.frames):
             yield SourceFrame("bench", seq, seq, {"blob": Output({"data": blob})})
-
-
-def checksum(data: np.ndarray) -> int:
-    """A sum that reads every byte of `data`: its bytes as little-endian 64-bit words (wrapping),
-    the last `nbytes % 8` one by one."""
-    raw = data.reshape(-1).view(np.uint8)
-    whole = raw.size - raw.size % 8
-    return (int(raw[:whole].view("<u8").sum(dtype=np.uint64)) + int(raw[whole:].sum())) % (1 << 64)
 
 
 class Relay(Operator):

@@ -30,7 +30,8 @@ SEED = 1
 
 def bench_data(frames: int = 100, rounds: int = 3) -> dict:
     from umad_common.datasets.anovox import AnoVoxScenario
-    from umad_common.datasets.drive import SENSOR_MODALITIES, open_drive
+    from umad_common.datasets.drive import SENSOR_MODALITIES
+    from umad_common.datasets.formats import open_drive
     from umad_common.datasets.recording_writers import write_rosbag2
     from umad_common.datasets.synthetic.generator import generate_benchmark
 

@@ -3,7 +3,7 @@ UMAD's bus against.
 
 The same chain as `bench.bus.over_bus`: a source sends `frames` blobs of `size_bytes` (pyarrow
 arrays; dora moves them through its shared memory), a relay reads every byte of each
-(`bus.checksum`) and passes it on, a sink acks each frame to the source through a cycle, and the
+(`blobs.checksum`) and passes it on, a sink acks each frame to the source through a cycle, and the
 source keeps at most `window` frames un-acked. The nodes run at the operators' CPU priority, as the
 launcher runs UMAD's. Each node process runs `main` of this module with its role.
 
@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from umad_common.dataflow.launch.launcher import OPERATOR_NICENESS
+from umad_common.benchmarks.blobs import checksum
+from umad_common.dataflow.launch.replicas import OPERATOR_NICENESS
 
 START_TIMEOUT_S = 120.0  # dora's own start-up (daemon, node handshakes) on a busy machine
 PROBE = -1  # the seq of the frames the source sends until the chain answers
@@ -194,8 +195,6 @@ def _take_ack(node, sent: dict[int, float], latencies: list[float]) -> bool:
 
 
 def run_relay(node) -> None:
-    from umad_common.benchmarks.bus import checksum
-
     cpu_start = None
     for event in node:
         if event["type"] != "INPUT":

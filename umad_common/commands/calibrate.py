@@ -64,7 +64,7 @@ def sha256(path: Path) -> str:
 
 def calibration_drives(data: Path, record: dict, topics: str | None = None) -> tuple[list, str]:
     """The label-free drives to calibrate on and why: the model's held-out normal drives when it names them."""
-    from umad_common.datasets.drive import normal_root, training_drives
+    from umad_common.datasets.formats import normal_root, training_drives
 
     root = normal_root(data)
     drives = training_drives(data, topics)

@@ -139,7 +139,7 @@ def evaluation_run(path: Path, name: str) -> Path:
 def drive_paths(data: Path, name: str) -> list[Path]:
     """The drives under `data` (a folder, or one recording file), found by listing; InputError when
     there are none."""
-    from umad_common.datasets.drive import find_drives
+    from umad_common.datasets.formats import find_drives
 
     if not data.exists():
         raise InputError.of(f"{name} {data}", "no such folder or file", DRIVES)
@@ -150,9 +150,10 @@ def drive_paths(data: Path, name: str) -> list[Path]:
 
 
 def opened(paths: list[Path], name: str, **options) -> list[Drive]:
-    """Each drive opened (`umad_common.datasets.drive.open_drive` with `options`): its format read,
+    """Each drive opened (`umad_common.datasets.formats.open_drive` with `options`): its format read,
     a recording's topics chosen and its index read. InputError naming the first that cannot be."""
-    from umad_common.datasets.drive import DatasetError, open_drive
+    from umad_common.datasets.drive import DatasetError
+    from umad_common.datasets.formats import open_drive
 
     try:
         return [open_drive(path, **options) for path in paths]
@@ -168,7 +169,8 @@ def drives(data: Path, name: str, topics: str | None = None) -> list[Drive]:
 def normal_drives(data: Path, name: str, topics: str | None = None) -> list[Drive]:
     """The drives a training verb reads: DATA/normal/ when it exists, else DATA's drives; opened
     without their labels."""
-    from umad_common.datasets.drive import SENSOR_MODALITIES, normal_root
+    from umad_common.datasets.drive import SENSOR_MODALITIES
+    from umad_common.datasets.formats import normal_root
 
     return opened(drive_paths(normal_root(data), name), name, topics=topics, keep=SENSOR_MODALITIES)
 
@@ -194,7 +196,7 @@ def evaluation_drives(
     """The folder or file `umad eval` scores (DATA/anomalous/ when it exists, else DATA) and its drives,
     none of them in DATA/normal/; each must carry anomaly labels (an AnoVox semantic camera, a
     recording's labels topic)."""
-    from umad_common.datasets.drive import anomalous_root, find_drives
+    from umad_common.datasets.formats import anomalous_root, find_drives
 
     if not data.exists():
         raise InputError.of(f"{name} {data}", "no such folder or file", DRIVES)

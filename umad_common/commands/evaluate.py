@@ -169,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
 
     from umad_common.dataflow.api.exit_codes import EXIT_INCOMPLETE, EXIT_STOPPED
     from umad_common.dataflow.launch.launcher import Launcher
-    from umad_common.datasets.drive import anomalous_root
+    from umad_common.datasets.formats import anomalous_root
     from umad_common.viz.headline import SCORES, percent, weakest_drive_text
     from umad_common.viz.report import write_report
     from umad_replay.sweep import sweep_log

@@ -1,6 +1,9 @@
 """A drive: the frames one recording holds, in time order, whatever format it is stored in.
 
-Two formats implement `Drive`, each in its own module:
+What every drive format shares, and nothing that knows the formats: `Drive` (the interface each
+reader implements), `DriveFrame`, `EgoState`, `DatasetError`, the modalities and the names and
+headers that tell a drive's storage. Two formats implement `Drive`, each in its own module, which
+imports this one:
 
 - `anovox`: an AnoVox scenario folder (`Scenario_*`, either layout), as CARLA and
   `umad generate synthetic` write it;
@@ -8,10 +11,8 @@ Two formats implement `Drive`, each in its own module:
   `.db3`) or an MCAP with Foxglove schemas (protobuf or JSON), as a test vehicle, the CARLA ROS
   bridge or a dataset converter writes it (`umad_common.datasets.recording`).
 
-`find_drives(root)` lists the drives under a folder from names and listings only; `open_drive`
-opens one. A folder with `normal/` and `anomalous/` parts is a benchmark: training reads the first
-(`normal_root`), evaluation the second. Every verb that takes `--data` and the replayer read drives
-through these two functions only.
+Which format a path is, and the functions every verb reads drives through (`find_drives`,
+`open_drive`, `training_drives`, ...), are in `umad_common.datasets.formats`, above the readers.
 """
 
 from __future__ import annotations
@@ -127,21 +128,6 @@ class Drive(ABC):
         return index % len(self)
 
 
-def drive_format(path: Path) -> str | None:
-    """`anovox`, `recording` or None (not a drive; UMAD's own logs are not), from names and headers."""
-    from umad_common.datasets.anovox import is_scenario_dir
-
-    if path.is_dir():
-        if (path / BAG_METADATA).is_file():
-            return "recording"
-        return "anovox" if is_scenario_dir(path) else None
-    if path.suffix == ".db3" and path.is_file():
-        return "recording"
-    if path.suffix == ".mcap" and path.is_file():
-        return None if mcap_profile(path) == UMAD_LOG_PROFILE else "recording"
-    return None
-
-
 def mcap_profile(path: Path) -> str | None:
     """The profile an MCAP file's header names (`ros2`, `umad`, ...), or None if it has no readable header."""
     with open(path, "rb") as f:
@@ -153,101 +139,6 @@ def mcap_profile(path: Path) -> str | None:
     return head[start + 4 : start + 4 + size].decode("utf-8", "replace")
 
 
-def find_drives(root: str | Path) -> list[Path]:
-    """Every drive under root (root itself if it is one), sorted by path. A bag folder or a scenario
-    folder is one drive and is not searched further; UMAD's own logs are skipped."""
-    root = Path(root)
-    if not root.exists():
-        raise DatasetError(
-            f"{root}: no such folder or file; expected drives: AnoVox Scenario_* folders, ROS 2 bags "
-            "(a folder with metadata.yaml, or a .mcap / .db3 file) or MCAP files with Foxglove schemas"
-        )
-    if drive_format(root) is not None:
-        return [root]
-    found: list[Path] = []
-    if root.is_dir():
-        for child in sorted(root.iterdir()):
-            if child.is_dir() or child.suffix in STORAGE_SUFFIXES:
-                found += find_drives(child)
-    return found
-
-
 def drive_name(path: Path) -> str:
     """A drive's name: its folder's name, or a bare recording's file name without suffix."""
     return path.name if path.is_dir() else path.stem
-
-
-def normal_root(data: str | Path) -> Path:
-    """DATA/normal for a benchmark with normal/ and anomalous/ parts, else DATA itself."""
-    data = Path(data)
-    return data / "normal" if (data / "normal").is_dir() else data
-
-
-def anomalous_root(data: str | Path) -> Path:
-    """DATA/anomalous for a benchmark with normal/ and anomalous/ parts, else DATA itself."""
-    data = Path(data)
-    return data / "anomalous" if (data / "anomalous").is_dir() else data
-
-
-def open_drive(
-    path: str | Path,
-    every: int = 1,
-    topics: str | dict[str, str] | None = None,
-    keep: tuple[str, ...] | None = None,
-    allow_truncated: bool = False,
-) -> Drive:
-    """The drive at `path`, in whichever format it is.
-
-    Args:
-        path: a drive (see `find_drives`).
-        every: keep every k-th frame (k >= 1).
-        topics: for recordings, the topic of each role (`camera=/a,lidar=/b`, see
-            `umad_common.datasets.topics`); unnamed roles are chosen by type. AnoVox folders ignore it.
-        keep: open only these modalities (e.g. SENSOR_MODALITIES: a reader that cannot see labels);
-            None: all.
-        allow_truncated: read a recording cut off by a crash up to the damage (refused otherwise).
-
-    Raises:
-        DatasetError: the path is not a drive, or cannot be read; the message says what was expected.
-    """
-    path = Path(path)
-    if every < 1:
-        raise ValueError(f"every must be >= 1, got {every}")
-    kind = drive_format(path) if path.exists() else None
-    if kind == "anovox":
-        from umad_common.datasets.anovox import AnoVoxScenario
-
-        return AnoVoxScenario(path, every=every, keep=keep)
-    if kind == "recording":
-        from umad_common.datasets.recording import RecordingDrive
-
-        return RecordingDrive(path, every=every, topics=topics, keep=keep, allow_truncated=allow_truncated)
-    raise DatasetError(
-        f"{path}: not a drive; expected an AnoVox Scenario_* folder, a ROS 2 bag (a folder with metadata.yaml, "
-        "or a .mcap / .db3 file) or an MCAP file with Foxglove schemas"
-    )
-
-
-def training_drives(
-    data: str | Path, topics: str | dict[str, str] | None = None, every: int = 1, keep=SENSOR_MODALITIES
-) -> list[Drive]:
-    """The normal drives a training verb reads (DATA/normal when it exists, else DATA), label-free.
-
-    Raises:
-        DatasetError: DATA holds no drive, or one cannot be read.
-    """
-    root = normal_root(data)
-    paths = find_drives(root)
-    if not paths:
-        raise DatasetError(f"{root}: no drives found; expected normal drives (AnoVox folders or recordings)")
-    return [label_free_drive(path, every, topics, keep) for path in paths]
-
-
-def label_free_drive(
-    path: str | Path, every: int = 1, topics: str | dict[str, str] | None = None, keep=SENSOR_MODALITIES
-) -> Drive:
-    """A drive whose reader cannot open labels: what trains or calibrates a model on normal drives
-    reads them through this (modalities outside `keep` come back as None, or zeros for `anomaly`)."""
-    if any(modality in LABEL_MODALITIES for modality in keep):
-        raise ValueError(f"keep {keep} holds a label modality; a label-free drive keeps only {SENSOR_MODALITIES}")
-    return open_drive(path, every=every, topics=topics, keep=tuple(keep))

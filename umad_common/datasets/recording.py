@@ -30,7 +30,16 @@ from typing import Any
 
 import numpy as np
 
-from umad_common.datasets.drive import BAG_METADATA, DatasetError, Drive, DriveFrame, EgoState, drive_name
+from umad_common.datasets.drive import (
+    BAG_METADATA,
+    UMAD_LOG_PROFILE,
+    DatasetError,
+    Drive,
+    DriveFrame,
+    EgoState,
+    drive_name,
+    mcap_profile,
+)
 from umad_common.datasets.recording_messages import (
     EXTRA_DEFINITIONS,
     Intrinsics,
@@ -294,6 +303,17 @@ class McapStore(MessageStore):
                     f"decoded ({type(exc).__name__}: {exc})"
                 ) from None
             yield topic, item.log_time, message
+
+
+def is_recording(path: Path) -> bool:
+    """Whether `path` is a recording, from names and the MCAP header only: a folder with
+    `metadata.yaml` (a rosbag2 folder), a `.db3` file, or a `.mcap` file that is not UMAD's own log
+    (its profile `umad`)."""
+    if path.is_dir():
+        return (path / BAG_METADATA).is_file()
+    if path.suffix == ".db3":
+        return path.is_file()
+    return path.suffix == ".mcap" and path.is_file() and mcap_profile(path) != UMAD_LOG_PROFILE
 
 
 def open_store(path: Path) -> MessageStore:

@@ -17,7 +17,6 @@ from __future__ import annotations
 from typing import Any
 
 from umad_common.dataflow import Context
-from umad_common.dataflow.api.plugins import registered_class
 from umad_common.datasets.sensor_rig import SensorRig
 from umad_common.segmentation.base import (
     SegmenterInputError,
@@ -29,21 +28,11 @@ from umad_common.segmentation.base import (
 from umad_common.segmentation.geometry import Geometry
 from umad_common.segmentation.image import Felzenszwalb, KMeansSegments, Slic
 from umad_common.segmentation.learned import GeometryLearned, Learned
+from umad_common.segmentation.registry import SEGMENTERS, UnknownSegmenterError, register, segmenter_class
 from umad_common.segmentation.sam import Sam
 from umad_common.segmentation.truth import GroundTruth, gt_masks
 
-SEGMENTERS: dict[str, type[SegmenterMethod]] = {
-    cls.name: cls for cls in (GroundTruth, Felzenszwalb, Slic, KMeansSegments, Geometry, Learned, GeometryLearned, Sam)
-}
-
-
-class UnknownSegmenterError(LookupError):
-    """A method name that is neither registered nor a loadable `package.module:Class` path."""
-
-
-def segmenter_class(name: str) -> type[SegmenterMethod]:
-    """The class for a registered name or a `package.module:ClassName` import path."""
-    return registered_class(name, SEGMENTERS, SegmenterMethod, "segmenter method", UnknownSegmenterError)
+register(GroundTruth, Felzenszwalb, Slic, KMeansSegments, Geometry, Learned, GeometryLearned, Sam)
 
 
 def build_segmenter(

@@ -35,6 +35,7 @@ from umad_common.segmentation.base import (
     masks_to_labels,
     sklearn_cluster,
 )
+from umad_common.segmentation.registry import UnknownSegmenterError, segmenter_class
 
 CROSS = ndimage.generate_binary_structure(2, 1)  # 4-connectivity
 SQUARE = ndimage.generate_binary_structure(2, 2)  # 8-connectivity
@@ -346,8 +347,6 @@ def rest_class(name: str, options: dict[str, Any]) -> type[SegmenterMethod] | No
     not geometry itself."""
     if not name:
         return None
-    from umad_common.segmentation import UnknownSegmenterError, segmenter_class
-
     try:
         cls = segmenter_class(name)
     except UnknownSegmenterError as exc:

@@ -25,7 +25,8 @@ import cv2
 import numpy as np
 import torch
 
-from umad_common.datasets.drive import Drive, find_drives, label_free_drive, normal_root, open_drive
+from umad_common.datasets.drive import Drive
+from umad_common.datasets.formats import find_drives, label_free_drive, normal_root, open_drive
 from umad_common.models.world_model import State, WorldModel
 from umad_common.training.world_model_data import DriveArrays, load_drive, observation_batch, scale_speed
 from umad_common.training.world_model_step import psnr

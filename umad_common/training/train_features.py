@@ -49,7 +49,7 @@ def load_normal_rgb(data: Path, cfg: FeatureTrainingConfig, topics: str | None =
     spread evenly over them (at most `cfg.max_frames`, the last `cfg.holdout` drives left out), and
     the names of the held-out drives. The segment net's training config has the same three fields.
     `topics`: a recording's topic per role (`umad_common.datasets.topics`)."""
-    from umad_common.datasets.drive import normal_root, training_drives
+    from umad_common.datasets.formats import normal_root, training_drives
 
     root = normal_root(data)
     drives = training_drives(data, topics, keep=("rgb",))

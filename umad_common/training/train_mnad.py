@@ -166,7 +166,7 @@ def load_normal_frames(data: Path, cfg: MnadConfig, max_frames: int, topics: str
     """(N, h, w, 3) uint8 camera frames of the normal drives (DATA/normal when present), resized to
     the model size and spread evenly over all drives. Label files are never opened. `topics`: a
     recording's topic per role (`umad_common.datasets.topics`)."""
-    from umad_common.datasets.drive import normal_root, training_drives
+    from umad_common.datasets.formats import normal_root, training_drives
 
     root = normal_root(Path(data))
     scenarios = training_drives(data, topics, keep=("rgb",))

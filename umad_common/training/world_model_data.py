@@ -17,7 +17,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from umad_common.datasets.drive import Drive, training_drives
+from umad_common.datasets.drive import Drive
+from umad_common.datasets.formats import training_drives
 from umad_common.datasets.sensor_rig import SensorRig
 from umad_common.models.world_model import (
     Observation,

@@ -1,6 +1,7 @@
 """Foxglove views of a run: what the pipeline sees, as messages of Foxglove's well-known schemas.
 
-The recorder adds them on `viz/<op>/<output>[/<view>]` channels beside the exact payloads (JSON
+The recorder adds them (`FoxgloveViews`, the graph's `record_views` by default: the engine names the
+class, it never imports it) on `viz/<op>/<output>[/<view>]` channels beside the exact payloads (JSON
 messages, `jsonschema` schemas: the official `@foxglove/schemas` files vendored in
 `foxglove_schemas/`), so a log opens in Foxglove with every view below; the layout
 `foxglove_layout.json` beside this file arranges them. Replay and sweeps ignore these channels (they
@@ -32,6 +33,7 @@ import cv2
 import numpy as np
 
 from umad_common.dataflow.api.messages import Message
+from umad_common.dataflow.record.mcap_log import LogViews, View
 from umad_common.datasets.synthetic.scenario import (
     MAX_STEER_RAD,
     ROUTE_EGO_FROM_BOTTOM,
@@ -91,13 +93,6 @@ def schema(name: str) -> dict:
 
 def vendored_schemas() -> list[str]:
     return sorted(p.stem for p in SCHEMA_FOLDER.glob("foxglove.*.json"))
-
-
-@dataclass(frozen=True)
-class VizMessage:
-    topic: str  # viz/<op>/<output>[/<view>]
-    schema: str  # foxglove.* or umad.FrameScore
-    body: dict
 
 
 def _colour_map(score: np.ndarray) -> np.ndarray:
@@ -407,8 +402,9 @@ def frame_score(msg: Message, score: float) -> dict:
     }
 
 
-class FoxgloveViews:
-    """Turns bus messages into viz messages, one message at a time, in the order they were recorded.
+class FoxgloveViews(LogViews):
+    """Turns bus messages into viz messages, one message at a time, in the order they were recorded:
+    the recorder's views by default (the graph's `record_views`).
 
     Args:
         mask_sources: map channel (`op/output`) -> the masks channel that refined it (the graph's
@@ -423,12 +419,12 @@ class FoxgloveViews:
         self._masks: dict[str, OrderedDict] = {}  # masks channel -> (run, seq) -> masks
         self._maps_waiting: dict[str, OrderedDict] = {}  # map channel -> (run, seq) -> (map, stamp_ns)
 
-    def of(self, channel: str, msg: Message) -> list[VizMessage]:
+    def of(self, channel: str, msg: Message) -> list[View]:
         """The viz messages of one bus message on `channel` (`op/output`)."""
         arrays, output = msg.arrays, channel.rsplit("/", 1)[-1]
         frame_id = f"{msg.run}#{msg.seq}"
         found = [
-            VizMessage(
+            View(
                 f"viz/{channel}" + (f"/{name}" if name else ""),
                 "foxglove.CompressedImage",
                 compressed_image(picture, msg.stamp_ns, frame_id),
@@ -440,37 +436,38 @@ class FoxgloveViews:
             found += self._joined_masks(msg.run)
         if "points" in arrays:
             body = point_cloud(arrays["points"], msg.stamp_ns, msg.meta.get("sensors"))
-            found.append(VizMessage(f"viz/{channel}", "foxglove.PointCloud", body))
+            found.append(View(f"viz/{channel}", "foxglove.PointCloud", body))
         if "ego" in arrays:
             speed, steer = float(arrays["ego"][0]), float(arrays["ego"][3])
             state = self.odometry.pose(msg.run, msg.seq, msg.stamp_ns, speed, steer)
-            found += [VizMessage(f"viz/{channel}/{name}", s, body) for name, (s, body) in ego_messages(state).items()]
+            found += [View(f"viz/{channel}/{name}", s, body) for name, (s, body) in ego_messages(state).items()]
         if "route" in arrays:
-            found.append(
-                VizMessage(f"viz/{channel}", "foxglove.SceneUpdate", route_scene(arrays["route"], msg.stamp_ns))
-            )
+            found.append(View(f"viz/{channel}", "foxglove.SceneUpdate", route_scene(arrays["route"], msg.stamp_ns)))
         if "anomaly" in arrays and arrays["anomaly"].ndim == 2:
             body = truth_annotations(arrays["anomaly"], msg.stamp_ns)
-            found.append(VizMessage(f"viz/{channel}/annotations", "foxglove.ImageAnnotations", body))
+            found.append(View(f"viz/{channel}/annotations", "foxglove.ImageAnnotations", body))
         if "map" in arrays and arrays["map"].ndim == 2:
             score = float(arrays["map"].max()) if arrays["map"].size else 0.0
-            found.append(VizMessage(f"viz/{channel}/score", FRAME_SCORE_SCHEMA["title"], frame_score(msg, score)))
+            found.append(View(f"viz/{channel}/score", FRAME_SCORE_SCHEMA["title"], frame_score(msg, score)))
             if channel in self.mask_sources:
                 found += self._map_with_masks(channel, msg)
         elif "score" in arrays and "boxes" in arrays:  # a frame result
             body = frame_score(msg, float(arrays["score"][0]))
-            found.append(VizMessage(f"viz/{channel}/score", FRAME_SCORE_SCHEMA["title"], body))
+            found.append(View(f"viz/{channel}/score", FRAME_SCORE_SCHEMA["title"], body))
         if "masks" in arrays and arrays["masks"].ndim == 3 and channel in self.mask_sources.values():
             _remember(self._masks.setdefault(channel, OrderedDict()), (msg.run, msg.seq), arrays["masks"])
             found += self._joined_masks(msg.run)
         return found
 
-    def _map_with_masks(self, channel: str, msg: Message) -> list[VizMessage]:
+    def schema(self, name: str) -> dict:
+        return schema(name)
+
+    def _map_with_masks(self, channel: str, msg: Message) -> list[View]:
         waiting = self._maps_waiting.setdefault(channel, OrderedDict())
         _remember(waiting, (msg.run, msg.seq), (msg.arrays["map"], msg.stamp_ns))
         return self._joined_masks(msg.run)
 
-    def _joined_masks(self, run: str) -> list[VizMessage]:
+    def _joined_masks(self, run: str) -> list[View]:
         """Mask annotations of every waiting map of `run` whose masks and camera size are known."""
         camera_size = self._camera_sizes.get(run)
         if camera_size is None:
@@ -481,7 +478,7 @@ class FoxgloveViews:
             for frame in [f for f in waiting if f[0] == run and f in masks_of]:
                 refined, stamp_ns = waiting.pop(frame)
                 body = mask_annotations(refined, masks_of[frame], camera_size, stamp_ns)
-                found.append(VizMessage(f"viz/{channel}/masks", "foxglove.ImageAnnotations", body))
+                found.append(View(f"viz/{channel}/masks", "foxglove.ImageAnnotations", body))
         return found
 
 

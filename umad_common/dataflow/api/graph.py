@@ -34,6 +34,9 @@ from umad_common.dataflow.transport.bus import DEFAULT_HUB, TlsConfig
 from umad_common.dataflow.transport.certificates import bundle_paths, operator_identity
 from umad_common.dataflow.transport.planes import PLANES, SharedPayloads
 
+# The recorder's views unless a graph names others: a name, not an import (the engine stays below viz).
+FOXGLOVE_VIEWS = "umad_common.viz.foxglove:FoxgloveViews"
+
 
 class TlsSpec(BaseModel):
     """Mutual TLS: the hub and every process of the graph present a certificate signed by `root_ca`."""
@@ -108,6 +111,13 @@ class GraphSpec(BaseModel):
         description="replicas on the hub's host link to each other directly (Zenoh peers that find each other "
         "through the hub), so messages between them skip the hub; false, or a graph with tls: every message "
         "through the hub",
+    )
+    record_views: str | None = Field(
+        FOXGLOVE_VIEWS,
+        pattern=r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$",
+        description="what a recorded run's log holds beside the exact payloads: views of the messages, made by "
+        "this `LogViews` class (record/mcap_log.py), an import path `package.module:Class`; by default the "
+        "Foxglove views (`viz/...` channels); null: none",
     )
     tls: TlsSpec | None = None
     security: SecuritySpec | None = None

@@ -7,9 +7,10 @@ after RECORDING_CLOCK_START_NS), so the log opens in Foxglove on the recording's
 recording itself; the time of writing otherwise (AnoVox drives are stamped from 0). The
 graph and the package version are stored as metadata `umad`; whether the recording is complete (the
 payloads it lost and the frames each channel lacks, see `umad_common/dataflow/record/recorder.py`) as metadata
-`umad_recording`, written when the log is closed. Foxglove views (`viz/...` channels, JSON
-messages of Foxglove's schemas, `umad_common/viz/foxglove.py`) may sit beside them; replay ignores
-those.
+`umad_recording`, written when the log is closed. Views of the messages may sit beside them:
+JSON messages of JSON schemas on channels of their own, made by the `LogViews` class the graph names
+(`record_views`: by default the Foxglove views, `viz/...` channels, `umad_common/viz/foxglove.py`,
+which the engine never imports); replay ignores those.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import logging
 import queue
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
@@ -58,6 +60,34 @@ def package_version() -> str:
         return "unknown"
 
 
+@dataclass(frozen=True)
+class View:
+    """One message a log's views add: a JSON `body` of the JSON schema named `schema`, on `topic`."""
+
+    topic: str
+    schema: str
+    body: dict
+
+
+class LogViews(ABC):
+    """Views of a log's bus messages, written beside their exact payloads: what a viewer shows of a
+    run (the Foxglove views, `umad_common.viz.foxglove.FoxgloveViews`, are the default; the graph's
+    `record_views` names the class, `package.module:Class`, loaded through `api/plugins.py`).
+
+    The recorder makes one per log, `cls(mask_sources)` (map channel `op/output` -> the masks
+    channel that refined it: the graph's wiring), and hands it every message that carries arrays, in
+    the order they were recorded, on a thread of its own.
+    """
+
+    @abstractmethod
+    def of(self, channel: str, msg: BusMessage) -> list[View]:
+        """The views of one bus message on `channel` (`op/output`); [] for none."""
+
+    @abstractmethod
+    def schema(self, name: str) -> dict:
+        """The JSON schema a view's `schema` names, stored once per log."""
+
+
 class McapRecorder:
     """Thread-safe writer: `write(key, payload)` from Zenoh callbacks, `close()` once at the end.
 
@@ -65,9 +95,8 @@ class McapRecorder:
         path: the MCAP file (created).
         graph_text: the graph, stored in the `umad` metadata.
         extra_metadata: more of the `umad` metadata.
-        viz: add the Foxglove views of every message (`viz/...` channels), made on a thread of their own.
-        mask_sources: map channel (`op/output`) -> the masks channel that refined it, for the views'
-            mask outlines (`umad_common.viz.foxglove.FoxgloveViews`).
+        views: add these views of every message (`LogViews`), made on a thread of their own; None: none.
+        mask_sources: map channel (`op/output`) -> the masks channel that refined it, for the views.
     """
 
     def __init__(
@@ -75,7 +104,7 @@ class McapRecorder:
         path: str | Path,
         graph_text: str = "",
         extra_metadata: dict[str, str] | None = None,
-        viz: bool = True,
+        views: type[LogViews] | None = None,
         mask_sources: dict[str, str] | None = None,
     ):
         self.path = Path(path)
@@ -89,9 +118,9 @@ class McapRecorder:
         self._lock = threading.Lock()
         self.count = 0
         self._viz_queue: queue.Queue | None = None
-        if viz:  # views are made off the Zenoh callback thread
+        if views is not None:  # views are made off the Zenoh callback thread
             self._viz_queue = queue.Queue(maxsize=256)
-            self._viz_thread = threading.Thread(target=self._viz_worker, args=(mask_sources or {},), daemon=True)
+            self._viz_thread = threading.Thread(target=self._viz_worker, args=(views, mask_sources or {}), daemon=True)
             self._viz_thread.start()
 
     def write(self, key: str, payload: bytes) -> BusMessage | None:
@@ -114,7 +143,7 @@ class McapRecorder:
         return msg
 
     def write_json(self, topic: str, schema_name: str, schema: dict, obj: dict, stamp_ns: int) -> None:
-        """A Foxglove-viewable message: JSON with a JSON schema (e.g. foxglove.CompressedImage)."""
+        """A viewable message: JSON with a JSON schema (e.g. foxglove.CompressedImage)."""
         with self._lock:
             schema_id = self._schemas.get(schema_name)
             if schema_id is None:
@@ -128,10 +157,8 @@ class McapRecorder:
                 channel, log_time_of(stamp_ns), json.dumps(obj, separators=(",", ":")).encode(), stamp_ns, 0
             )
 
-    def _viz_worker(self, mask_sources: dict[str, str]) -> None:
-        from umad_common.viz.foxglove import FoxgloveViews, schema
-
-        foxglove = FoxgloveViews(mask_sources)
+    def _viz_worker(self, views: type[LogViews], mask_sources: dict[str, str]) -> None:
+        made = views(mask_sources)
         failed: set[str] = set()  # channels whose views failed: logged once each
         while True:
             item = self._viz_queue.get()
@@ -141,13 +168,13 @@ class McapRecorder:
             _, _, rest = key.partition("/")  # drop "umad/"
             op_output = rest.partition("/")[2]
             try:
-                for view in foxglove.of(op_output, msg):
-                    self.write_json(view.topic, view.schema, schema(view.schema), view.body, msg.stamp_ns)
+                for view in made.of(op_output, msg):
+                    self.write_json(view.topic, view.schema, made.schema(view.schema), view.body, msg.stamp_ns)
             except Exception:  # a view is a convenience: the exact payload is recorded all the same
                 if op_output not in failed:
                     failed.add(op_output)
                     log.exception(
-                        "no Foxglove view of %s %s#%d (later failures on it are not logged)",
+                        "no view of %s %s#%d (later failures on it are not logged)",
                         op_output,
                         msg.run,
                         msg.seq,

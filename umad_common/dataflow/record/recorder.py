@@ -34,8 +34,9 @@ from pathlib import Path
 import zenoh
 
 from umad_common.dataflow.api.graph import Graph
+from umad_common.dataflow.api.plugins import import_class
 from umad_common.dataflow.delivery.service_messages import ServiceMessageError, encode_ack, read_ack
-from umad_common.dataflow.record.mcap_log import RECORDING_METADATA, McapRecorder
+from umad_common.dataflow.record.mcap_log import RECORDING_METADATA, LogViews, McapRecorder
 from umad_common.dataflow.transport.bus import RECORDER, Keys
 from umad_common.dataflow.transport.planes import open_plane
 
@@ -64,7 +65,9 @@ class Recording:
     def __init__(self, session: zenoh.Session, graph: Graph, path: Path, metadata: dict[str, str]):
         self.keys = Keys(graph.name)
         self.path = path
-        self.file = McapRecorder(path, metadata.pop("graph", ""), metadata, mask_sources=mask_sources(graph))
+        self.file = McapRecorder(
+            path, metadata.pop("graph", ""), metadata, views=log_views(graph), mask_sources=mask_sources(graph)
+        )
         self.sinks = set(graph.sinks())
         self._outputs = {op: [self.keys.data(op, out) for out in cls.outputs] for op, cls in graph.classes.items()}
         self._live: dict[str, set[str]] = {}  # op -> its live replicas, once seen
@@ -278,6 +281,17 @@ class Recording:
     def sweep_gone_rings(self) -> None:
         """Forget the mappings of rings their publishers have left (the launcher swept them)."""
         self._payloads.forget_gone()
+
+
+class UnknownViewsError(LookupError):
+    """A graph's `record_views` that is not a loadable `LogViews` class."""
+
+
+def log_views(graph: Graph) -> type[LogViews] | None:
+    """The class of the views the graph's log holds (`record_views`, imported here: the engine names
+    the Foxglove views, `umad_common.viz.foxglove`, and never imports them itself), or None for none."""
+    path = graph.spec.record_views
+    return import_class(path, LogViews, "record_views", UnknownViewsError) if path else None
 
 
 def mask_sources(graph: Graph) -> dict[str, str]:
