@@ -25,6 +25,11 @@ acks and goodbyes check that the key names the sender the message claims (`servi
 
 from __future__ import annotations
 
+import json
+import os
+import tempfile
+from pathlib import Path
+
 from umad_common.dataflow.api.graph import Graph
 from umad_common.dataflow.transport.bus import Keys
 
@@ -121,3 +126,11 @@ def access_control(graph: Graph) -> dict:
         subjects.append({"id": role, "cert_common_names": sorted(names)})
         policies.append({"id": role, "rules": [rule["id"] for rule in own], "subjects": [role]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def access_control_file(graph: Graph) -> Path:
+    """The graph's Zenoh access control (`access.py`) as JSON in a new file of mode 0600."""
+    handle, path = tempfile.mkstemp(prefix=f"umad-{graph.name}-access-", suffix=".json")
+    with os.fdopen(handle, "w") as out:
+        json.dump(access_control(graph), out)
+    return Path(path)

@@ -23,18 +23,17 @@ import queue
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections import defaultdict, deque
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
 
 from umad_common.dataflow.api.exit_codes import EXIT_CONFIG, EXIT_INCOMPLETE, EXIT_STOPPED
-from umad_common.dataflow.api.graph import Graph, GraphError, OperatorSpec, load_graph
-from umad_common.dataflow.launch.access import access_control
+from umad_common.dataflow.api.graph import Graph, GraphError, load_graph
+from umad_common.dataflow.launch.access import access_control_file
+from umad_common.dataflow.launch.replicas import OPERATOR_NICENESS, Replica, process_cpu_s, replica_command
 from umad_common.dataflow.launch.report import ProgressLine, summary_table
 from umad_common.dataflow.record.mcap_log import describe_loss
 from umad_common.dataflow.record.recorder import Recording
@@ -49,43 +48,6 @@ RECORDER_DRAIN_S = 30.0  # a finished graph: the recorder writes what is still q
 RING_GRACE_S = 30.0  # a replica's payload ring outlives it this long, for the recorder
 HUB_CONNECT_TIMEOUT_S = 60.0
 HUB_MIN_LIFETIME_S = 5.0  # a hub that dies sooner after its start counts as failing to start
-OPERATOR_NICENESS = 5  # operators yield the CPU to the hub and the launcher (the control path)
-
-
-@dataclass
-class Replica:
-    op_id: str
-    index: int
-    command: list[str]
-    is_source: bool
-    proc: subprocess.Popen | None = None
-    restarts: int = 0
-    restart_at: float | None = None
-    started_at: float = 0.0
-    finished: bool = False
-    failed: bool = False
-    readers: list[threading.Thread] = field(default_factory=list)
-
-    @property
-    def name(self) -> str:
-        return f"{self.op_id}.{self.index}"
-
-
-def access_control_file(graph: Graph) -> Path:
-    """The graph's Zenoh access control (`access.py`) as JSON in a new file of mode 0600."""
-    handle, path = tempfile.mkstemp(prefix=f"umad-{graph.name}-access-", suffix=".json")
-    with os.fdopen(handle, "w") as out:
-        json.dump(access_control(graph), out)
-    return Path(path)
-
-
-def process_cpu_s(pid: int) -> float | None:
-    """CPU seconds (user + system) process `pid` has used so far; None where /proc cannot say."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
-    except OSError:
-        return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime: fields 14, 15
 
 
 class Launcher:
@@ -126,7 +88,7 @@ class Launcher:
         self.replicas: list[Replica] = []
         for spec in graph.spec.operators:
             for index in range(spec.replicas):
-                cmd = self._command(graph, self.graph_file, spec, index)
+                cmd = replica_command(graph, self.graph_file, spec, index, hub=self.hub, sets=self.sets)
                 if spec.id in sources:
                     if max_frames is not None:
                         cmd += ["--max-frames", str(max_frames)]
@@ -134,7 +96,7 @@ class Launcher:
                         cmd += ["--replay-log", str(replay_log)]
                         if allow_truncated:
                             cmd.append("--allow-truncated")
-                self.replicas.append(Replica(spec.id, index, cmd, spec.id in sources))
+                self.replicas.append(Replica(op_id=spec.id, index=index, command=cmd, is_source=spec.id in sources))
 
     def _hub_command(self) -> list[str]:
         """The hub's command line. A graph's access control goes to the hub in a file only this user
@@ -146,28 +108,6 @@ class Launcher:
         if self.graph.spec.security is not None:
             self.access_file = access_control_file(self.graph)
             cmd += ["--access-control", str(self.access_file)]
-        return cmd
-
-    def _command(self, graph: Graph, graph_file: Path, spec: OperatorSpec, index: int) -> list[str]:
-        """The command line of one replica, in the operator's own Python environment if it names one."""
-        python = spec.python or sys.executable
-        if spec.python and not Path(spec.python).is_absolute():
-            python = str(graph.base_dir / spec.python)
-        cmd = [
-            python,
-            "-m",
-            "umad_common.dataflow.process.replica",
-            "--graph",
-            str(graph_file),
-            "--op",
-            spec.id,
-            "--replica",
-            str(index),
-            "--connect",
-            self.hub,
-        ]
-        for text in self.sets:  # every process sees the whole effective graph (e.g. a source's pacing)
-            cmd += ["--set", text]
         return cmd
 
     # -- processes ----------------------------------------------------------------------------------
@@ -338,7 +278,7 @@ class Launcher:
             )
             return 1
         previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-        self.hub_replica = Replica("hub", 0, self._hub_command(), False)
+        self.hub_replica = Replica(op_id="hub", index=0, command=self._hub_command(), is_source=False)
         self._spawn(self.hub_replica, niceness=0)
         refused = None
         try:
@@ -508,7 +448,10 @@ class Launcher:
         if any(r.op_id == op_id for r in self.replicas):
             return {"status": "refused", "reason": f"{op_id} is already running"}
         for index in range(spec.replicas):
-            rep = Replica(op_id, index, self._command(graph, Path(graph_file or self.graph_file), spec, index), False)
+            command = replica_command(
+                graph, Path(graph_file or self.graph_file), spec, index, hub=self.hub, sets=self.sets
+            )
+            rep = Replica(op_id=op_id, index=index, command=command, is_source=False)
             self.replicas.append(rep)
             self._spawn(rep)
             self._say(rep.name, "started on request")
