@@ -187,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
     record = out / "run.mcap"
     print(f"evaluating {source} -> {out}", flush=True)
     with timed(phases, "graph"):
-        code = Launcher(graph, graph_file, args.set, record, hub=args.hub).run()
+        code = Launcher(graph, graph_file, sets=args.set, record=record, hub=args.hub).run()
     if code == EXIT_INCOMPLETE and not args.allow_incomplete:
         print(
             f"the recorded run {record} lacks messages (see above): no table from it; rerun, or pass "
