@@ -53,6 +53,11 @@ class PayloadPlane(Protocol):
 
     name: str
 
+    @staticmethod
+    def unfit_cpu(machine: str) -> str | None:
+        """Why the plane cannot run on a CPU of this `platform.machine()`, or None where it can."""
+        ...
+
     def put(self, payload: bytes) -> bytes | zenoh.ZBytes:
         """What goes on the wire for `payload`: the payload itself when it is smaller than
         `INLINE_BELOW` or the plane has no room, else the plane's description of it."""
@@ -100,6 +105,9 @@ class Planes:
         }
         self.chosen = self.planes[name]
 
+    def unfit_cpu(self, machine: str) -> str | None:
+        return self.chosen.unfit_cpu(machine)
+
     def put(self, payload: bytes) -> bytes | zenoh.ZBytes:
         return self.chosen.put(payload)
 
@@ -142,15 +150,11 @@ def payload_plane(shared_payloads: SharedPayloads, machine: str | None = None) -
     if shared_payloads is False:
         return "inline"
     name = DEFAULT_PLANE if shared_payloads is True else shared_payloads
-    if name == "ring":
-        from umad_common.dataflow.transport.planes.ring import ring_is_correct_here
-
-        if not ring_is_correct_here(machine):
-            log.info(
-                "payload rings need x86's memory order and this CPU is %s: large payloads go through Zenoh's shared memory",
-                machine or platform.machine(),
-            )
-            return FALLBACK_PLANE
+    machine = machine or platform.machine()
+    unfit = plane_class(name).unfit_cpu(machine)
+    if unfit:
+        log.info("%s and this CPU is %s: large payloads go through Zenoh's shared memory", unfit, machine)
+        return FALLBACK_PLANE
     return name
 
 

@@ -12,6 +12,10 @@ class InlinePlane:
 
     name = "inline"
 
+    @staticmethod
+    def unfit_cpu(machine: str) -> None:
+        return None  # any CPU
+
     def __init__(self, prefix: str = "", pool_mib: int | None = None, publishing: bool = True):
         pass
 

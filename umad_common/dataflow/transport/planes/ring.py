@@ -299,6 +299,10 @@ class RingPlane:
 
     name = "ring"
 
+    @staticmethod
+    def unfit_cpu(machine: str) -> str | None:
+        return None if ring_is_correct_here(machine) else "payload rings need x86's memory order"
+
     def __init__(
         self,
         prefix: str = "",

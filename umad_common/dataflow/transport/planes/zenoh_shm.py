@@ -64,6 +64,10 @@ class ZenohShmPlane:
 
     name = "zenoh_shm"
 
+    @staticmethod
+    def unfit_cpu(machine: str) -> None:
+        return None  # any CPU
+
     def __init__(self, prefix: str = "", pool_mib: int | None = None, publishing: bool = True):
         self.payloads = ZenohShmPayloads(pool_mib or DEFAULT_POOL_MIB) if publishing else None
 
