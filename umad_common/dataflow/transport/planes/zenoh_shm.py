@@ -25,6 +25,7 @@ import zenoh
 from zenoh.shm import GarbageCollect, ShmProvider
 
 from umad_common.dataflow.transport.planes import INLINE_BELOW
+from umad_common.dataflow.transport.planes.inline import InlinePlane
 
 DEFAULT_POOL_MIB = 64  # a source's window of 1 MiB frames several times over, per publishing replica
 log = logging.getLogger("umad.payloads")
@@ -58,33 +59,15 @@ class ZenohShmPayloads:
         return zenoh.ZBytes(buffer)
 
 
-class ZenohShmPlane:
+class ZenohShmPlane(InlinePlane):
     """Plane `zenoh_shm` (`planes.PayloadPlane`): puts into this replica's `ZenohShmPayloads`. Zenoh
-    delivers the bytes themselves, so taking is the identity and nothing is ever fetched."""
+    delivers the bytes themselves, so the subscribing side is the inline plane's: taking is the
+    identity and nothing is ever fetched."""
 
     name = "zenoh_shm"
-
-    @staticmethod
-    def unfit_cpu(machine: str) -> None:
-        return None  # any CPU
 
     def __init__(self, prefix: str = "", pool_mib: int | None = None, publishing: bool = True):
         self.payloads = ZenohShmPayloads(pool_mib or DEFAULT_POOL_MIB) if publishing else None
 
     def put(self, payload: bytes) -> zenoh.ZBytes | bytes:
         return payload if self.payloads is None else self.payloads.pack(payload)
-
-    def declare(self, session: zenoh.Session) -> list:
-        return []
-
-    def take(self, raw: bytes) -> bytes | None:
-        return raw
-
-    def fetch(self, session: zenoh.Session, prefix: str, raw: bytes) -> bytes | None:
-        return None
-
-    def forget_gone(self) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
