@@ -80,8 +80,8 @@ class WorldModelParams(BaseModel):
     device: DeviceName = device_field()
     precision: Literal["float32", "bfloat16"] = Field(
         default="float32",
-        description="bfloat16: the model runs under bfloat16 autocast (on a CPU with AVX-512 BF16 0.63x the "
-        "operator's CPU; AP and FPR95 within 0.3 points of float32 on validation seed 2, docs/experiments.md); "
+        description="bfloat16: the model runs under bfloat16 autocast (less CPU on a CPU with AVX-512 BF16; AP and "
+        "FPR95 those of float32 to a fraction of a point on validation seed 2, docs/experiments.md); "
         "the images it publishes stay float32",
     )
 

@@ -21,7 +21,7 @@ clock, and matches them by (run, seq). Reported:
 - `latency_ms`: from the camera message's arrival to the refined map's (`camera_to_refined`) and to
   the frame result's (`camera_to_result`) at the same subscriber, p50 / p99 / max, over the frames
   where all three arrived. It leaves out
-  the camera's own hop from the replayer to the subscriber (about 1 ms, `umad bench bus`). Beside
+  the camera's own hop from the replayer to the subscriber (one bus hop: `umad bench bus`). Beside
   it the replayer's own send-to-ack latency (`source_send_to_ack_*`, the result operator's ack);
 - `cpu_ms_per_frame`: per operator, its own work per frame it computed, and `runtime_cpu_ms` per
   frame the runtime's (decoding, joining, acks), from the replicas' stats as the launcher prints

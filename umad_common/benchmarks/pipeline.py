@@ -5,14 +5,15 @@ Passes over the same frames. Every operator of the graph in this one process, fr
 the graph's order, each `process` call timed in CPU seconds: the operators' own work per frame,
 summed over the graph and divided by the cores, is the frames/s the machine could reach if the
 dataflow cost nothing. That pass runs once before the graph and once after it, and the bound uses
-their mean: a shared or virtual machine's speed drifts by a tenth from one minute to the next, and
-a bound measured only before the graph moved the ratio by as much (both passes are in the result,
-so the drift shows). Then the graph itself, as processes on a hub: frames/s (frames over the
-source's first-send-to-last-ack time, start-up excluded), end-to-end latency from the replayer's
-send to the accumulator's ack (p50/p99), their ratio to the bound, and per operator where a frame's
-time went (the stats every replica publishes, see `umad_common.dataflow.delivery.joiner.Stats`), so the operator to
-replicate or move to another machine is visible. `operators_cpu_ms_per_frame` sets the
-operators' own CPU per frame in the graph next to the in-process passes'.
+their mean: a shared or virtual machine's speed drifts from one minute to the next
+(docs/benchmarks.md), and a bound measured only before the graph moved the ratio by as much (both
+passes are in the result, so the drift shows). Then the graph itself, as processes on a hub:
+frames/s (frames over the source's first-send-to-last-ack time, start-up excluded), end-to-end
+latency from the replayer's send to the accumulator's ack (p50/p99), their ratio to the bound, and
+per operator where a frame's time went (the stats every replica publishes, see
+`umad_common.dataflow.delivery.joiner.Stats`), so the operator to replicate or move to another
+machine is visible. `operators_cpu_ms_per_frame` sets the operators' own CPU per frame in the graph
+next to the in-process passes'.
 
 The bound assumes a core's work costs the same whether or not the other cores are busy. Cores of
 a virtual machine share caches, a memory bus or a physical core, so a last pass runs the in-process

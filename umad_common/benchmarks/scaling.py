@@ -103,10 +103,9 @@ def compare_replicas(frames: int, hub: str, vgg_weights: str | None = None) -> d
 
 
 def bench_scaling(frames: int = 400, hub: str = "tcp/127.0.0.1:7449") -> dict:
-    """`frames` for the feature net, a tenth of them for VGG16 (10x its cost per frame), so both
-    runs last seconds: with 40 feature-net frames a run lasted under a second, and filling and
-    draining the 8 frames in flight took a fifth of it (2 over 1 replica: 1.55 there, 1.63 with 400
-    frames, in the same session)."""
+    """`frames` for the feature net and a tenth of them for the far heavier VGG16, so both runs
+    last seconds: in a run under a second, filling and draining the 8 frames in flight is a
+    large part of it and lowers the ratio (docs/experiments.md)."""
     vgg_frames = max(8, frames // 10)
     return {
         "frames": {"feature_net": frames, "vgg16": vgg_frames},

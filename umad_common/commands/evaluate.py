@@ -13,8 +13,8 @@
 `--protocol paper` scores every 10th frame and writes the table in the paper's layout; `quick`
 (the default) scores every 2nd frame and writes one line per configuration.
 
-example: umad eval --out umad-eval   (the built-in benchmark and the shipped models: about 6 minutes
-on 2 cores); umad eval --data DIR --out OUT [--topics camera=/a,labels=/b] for your own drives
+example: umad eval --out umad-eval   (the built-in benchmark and the shipped models; its time on 2
+cores: docs/benchmarks.md); umad eval --data DIR --out OUT [--topics camera=/a,labels=/b] for your own drives
 """
 
 from __future__ import annotations

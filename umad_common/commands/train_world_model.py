@@ -81,7 +81,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="train a lidar head with the model: it decodes the lidar view the `lidar` difference compares "
         "(`umad train lidar-head` adds one to a model trained without, leaving its camera weights as they are; "
-        "trained together, the head cost the camera rows 3.6-5.8 AP points on the stress set: docs/experiments.md)",
+        "trained together, the head cost the camera rows AP on the stress set: docs/experiments.md)",
     )
     add_device_argument(parser)
 

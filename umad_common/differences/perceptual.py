@@ -24,8 +24,8 @@ class PerceptualDifference(DifferenceMetric):
 
     def __init__(self, extractor: nn.Module, extractor_name: str, device: torch.device | str = "cpu") -> None:
         self.device = torch.device(device)  # where the net runs; the map comes back to the CPU
-        # channels-last (NHWC) layout: the feature net's convolutions and pooling in 0.6x the CPU, the
-        # map within 1e-6 of the default layout's; the (h, w, 3) images are NHWC already
+        # channels-last (NHWC) layout: the feature net's convolutions and pooling take less CPU, the map the
+        # default layout's up to float rounding (docs/experiments.md); the (h, w, 3) images are NHWC already
         self.extractor = extractor.to(self.device, memory_format=torch.channels_last).eval().requires_grad_(False)
         self.extractor_name = extractor_name
 

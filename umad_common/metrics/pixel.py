@@ -63,7 +63,7 @@ def _float16_patterns(scores: np.ndarray) -> np.ndarray:
 def _float32_to_float16_bits(values: np.ndarray) -> np.ndarray:
     """numpy's `values.astype(np.float16).view(np.uint16)` for finite or infinite float32 values, bit
     for bit (checked over every non-NaN float32 when this was written; tests/test_metrics.py checks
-    the edges), in about 0.7x the time of numpy's cast: in place on the integer bits, rounding to nearest
+    the edges), faster than numpy's cast (docs/experiments.md): in place on the integer bits, rounding to nearest
     even by adding half an ulp less one plus the kept mantissa's lowest bit; the few values below
     float16's normal range rounded by the FPU's own float32 addition of 0.5 (whose ulp is float16's
     subnormal spacing), those at or past 65520 made infinite."""

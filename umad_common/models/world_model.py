@@ -48,7 +48,7 @@ class WorldModelConfig:
     image_width: int = 192
     image_channels: tuple[int, ...] = (48, 96)  # encoder widths, one stride-2 stage each; the latent grid is
     #   image size / 2**len(image_channels) (32 x 48 by default: a 4 x 4 pixel cell keeps poles and lane
-    #   marks; 8 x 8 cells with 2-4x the channels drew them 1 dB worse in the same time)
+    #   marks; 8 x 8 cells, even with 2-4x the channels, drew them worse in the same time: docs/experiments.md)
     decoder_channels: tuple[int, ...] = (96, 48, 24)  # decoder widths: [0] on the grid, then one per
     #   x2 upsampling stage (len(image_channels) + 1 entries)
     res_blocks: int = 1  # residual 3x3 blocks on the grid, in the encoder and in the decoder
@@ -69,14 +69,14 @@ class WorldModelConfig:
     hidden_channels: int = 48  # width of the prior and posterior heads
     transition_kernel: int = 7  # kernel of the ConvGRU: how far (in cells) its update reaches per step
     max_shift: float = 4.0  # cells the motion warp may move a cell of the state per step; without the warp
-    #   the 3-step predictions were worst at the image's sides (20.6 dB there vs 25.5 in the centre), where
-    #   facades pass 2-3 cells per step at 9 m/s, further than a convolution's reach
+    #   the 3-step predictions were worst at the image's sides (docs/experiments.md), where facades pass 2-3
+    #   cells per step at 9 m/s, further than a convolution's reach
     motion_channels: int = 32  # width of the motion head that predicts the warp
     ground_flow: bool = False  # the warp starts from the flow a flat road makes under the camera at the
     #   current speed (below the horizon; `MotionWarp.ground_source`), and the head learns the rest: the
-    #   learned warp alone moved the road 0.1-0.3 cells per step where it moves 1.5-4 near the car at 9 m/s.
-    #   +0.74 dB at 3 steps on validation seed 2 in the 8-epoch comparison (README); off until a model
-    #   trained with it ships
+    #   learned warp alone moved the road near the car a fraction of the 1.5-4 cells per step it moves at
+    #   9 m/s. Judged on validation seed 2 (docs/experiments.md: better 3-step predictions, no better AP with
+    #   the full recipe); off until a model trained with it ships
     camera_fov: float = 90.0  # horizontal field of view (deg) of the camera, square pixels (AnoVox and the
     #   built-in world)
     camera_height: float = 1.8  # metres above the road (AnoVox and the built-in world)
@@ -552,9 +552,8 @@ class WorldModel(nn.Module):
         the rollout started from, taken as constant over the step), then the GRU updates it.
         Filtering (`observe`) leaves the warp out: a warp also carries what the posterior drew a step
         before, an anomaly included, into the next frame's prior, so the reconstructions would learn
-        to redraw an object they never saw once it has been in view (measured on validation seed 2
-        with the warp in both: abs+ssim+perceptual AP without masks 35.8 -> 28.4 %, while the 3-step
-        prediction gained 1.9 dB)."""
+        to redraw an object they never saw once it has been in view (chosen on validation seed 2: with
+        the warp in both, the 3-step predictions gained and AP without masks fell; docs/experiments.md)."""
         h, z = self.as_grid(state.h), self.as_grid(state.z)
         action_grid = action[:, :, None, None].expand(-1, -1, *z.shape[2:]).to(z.dtype)
         if move:
@@ -597,9 +596,9 @@ class WorldModel(nn.Module):
 
     def fold_upsampling(self) -> None:
         """For inference: the decoder's upsamplings and the convolutions after them as `UpsampledConv`
-        (the world-model operator in 0.76x the CPU; its images within 3e-7 of the unfolded decoder's on
-        a generated drive). The folded kernels are copies of the weights: neither train nor save the
-        model after this."""
+        (less CPU for the world-model operator, the same images as the unfolded decoder's up to float
+        rounding; docs/experiments.md). The folded kernels are copies of the weights: neither train nor
+        save the model after this."""
         self.image_decoder[-1] = fold_upsampling(self.image_decoder[-1])
         if self.config.lidar_head:
             self.lidar_decoder[2] = fold_upsampling(self.lidar_decoder[2])

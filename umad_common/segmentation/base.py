@@ -21,8 +21,8 @@ TUNED = "chosen on validation seed 2 (best refined AP) by `umad bench segmenters
 
 def sklearn_cluster() -> Any:
     """scikit-learn's clustering module, imported when a method that clusters is built, not with this
-    package: the import costs about 0.8 s of CPU, which every replica of a graph (each one loads
-    every operator class to check the wiring) paid at start-up."""
+    package: every replica of a graph loads every operator class to check the wiring, and this import
+    was a large part of each replica's start-up CPU (docs/experiments.md)."""
     import sklearn.cluster
 
     return sklearn.cluster

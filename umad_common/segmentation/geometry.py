@@ -227,7 +227,7 @@ class Geometry(SegmenterMethod):
         if (above.sum() if weight is None else weight.sum()) >= p.cluster_min_points:
             dbscan = self.dbscan(eps=p.cluster_eps, min_samples=p.cluster_min_points, algorithm="ball_tree")
             labels[above] = dbscan.fit_predict(xyz[above], sample_weight=weight)  # the ball tree finds the same
-            #   neighbours as the default k-d tree in 0.65x the CPU on these clouds (about 2700 points, 47 each)
+            #   neighbours as the default k-d tree in less CPU on these dense clouds (docs/experiments.md)
         else:
             labels[above] = -1
         count = int(labels.max()) + 1

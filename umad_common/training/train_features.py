@@ -130,7 +130,8 @@ def dense_vicreg_loss(
 
     The loss acts on the very features Δ_PD compares, with no projector in between: a projector
     absorbs the invariance and leaves the backbone sensitive to blur (on a blur + inpainting proxy
-    of reconstructions, finest-level anomaly AP 0.04 with VICReg's projector, 0.46 without).
+    of reconstructions the finest level's anomaly AP collapsed with VICReg's projector:
+    docs/experiments.md).
     """
     total = levels1[0].new_zeros(())
     for f1, f2 in zip(levels1, levels2, strict=True):

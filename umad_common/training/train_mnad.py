@@ -10,7 +10,7 @@ deterministic algorithms are on; the same data, seed, epochs and thread count gi
 A time budget (`minutes`) is turned into a number of epochs before training starts, by timing a few
 steps of a throwaway copy; the record keeps that number, so `--epochs` reproduces the run. Like the
 world model, it trains with bfloat16 autocast and channels-last convolutions where the CPU has
-bfloat16 (2-3x faster), the loss in float32.
+bfloat16 (faster: docs/experiments.md), the loss in float32.
 """
 
 from __future__ import annotations

@@ -13,10 +13,10 @@ length are checked before a single array is built, and a size cap stops memory b
 
 A large payload (`IN_PLACE_FROM` bytes or more) is read in place: each array is a read-only numpy
 view on the payload (which it keeps alive), not a copy, unless its bytes are bit-packed or not
-aligned for its dtype. Walking the map in Python costs 40-80 µs a message where msgpack's own
-decoder takes 7-15 µs and copies each array, so a smaller payload is decoded by msgpack. Encoding
-writes each array's bytes once, into the payload, or (`encoded_parts`) into whatever buffer the
-transport hands out.
+aligned for its dtype. Walking the map in Python costs several times what msgpack's own decoder
+takes, which copies each array, so only a large payload gains and a smaller one is decoded by
+msgpack (docs/experiments.md). Encoding writes each array's bytes once, into the payload, or
+(`encoded_parts`) into whatever buffer the transport hands out.
 """
 
 from __future__ import annotations

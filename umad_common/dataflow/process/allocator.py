@@ -4,11 +4,11 @@ By default glibc serves a request of 128 KiB or more (the bytes of a 1 MiB frame
 temporary the size of a camera image) with a fresh `mmap` and unmaps it when it is freed (the
 threshold only rises to the size of buffers freed so far), and gives the top of its heap back to
 the kernel once twice that lies free there. A process that handles a stream of frames then pays a
-page fault for every 4 KiB of every such buffer, frame after frame: on 2 cores, `msgpack.packb`
-of one 1 MiB frame message took 1.26 ms, where one copy of its bytes takes 0.04 ms. With large
-buffers served from the heap and the heap kept, the memory a frame freed is there for the next
-one (0.40 ms). `keep_freed_memory` says so once at process start: every `umad` command and every
-operator replica call it. A process keeps at most `TRIM_THRESHOLD_BYTES` of freed memory.
+page fault for every 4 KiB of every such buffer, frame after frame: encoding a 1 MiB frame message
+then costs many times one copy of its bytes (docs/experiments.md). With large buffers served from
+the heap and the heap kept, the memory a frame freed is there for the next one.
+`keep_freed_memory` says so once at process start: every `umad` command and every operator
+replica call it. A process keeps at most `TRIM_THRESHOLD_BYTES` of freed memory.
 """
 
 from __future__ import annotations

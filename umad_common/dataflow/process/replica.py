@@ -43,9 +43,9 @@ def run_operator(
     The process ends with `os._exit` once its operator and session are closed and its output is
     flushed. The interpreter's own finalization is skipped: it garbage-collects every object torch,
     scikit-learn and the models left behind, CPU that a graph stopping all its replicas at once on
-    a busy machine does not have (measured on 2 cores: every replica was through its shutdown
-    within 0.15 s of SIGTERM, then sat in that collection past the launcher's grace period and was
-    killed). With the hub gone, Zenoh's threads would hold up a normal exit as well.
+    a busy machine does not have (replicas through their own shutdown soon after SIGTERM sat in that
+    collection past the launcher's grace period and were killed: docs/experiments.md). With the hub
+    gone, Zenoh's threads would hold up a normal exit as well.
     """
     one_blas_thread()
     keep_freed_memory()
@@ -100,9 +100,9 @@ def one_blas_thread() -> threadpool_limits:
     """Limit numpy's BLAS to one thread in this process (until the returned limiter, used as a context
     manager, exits).
 
-    By default BLAS starts a thread per core that spins after every call: in a mask refiner that was
-    38 ms of CPU per frame next to 2 ms of its own work. A replica's parallelism is the graph's
-    processes; an operator that wants threads for its own work (torch's `threads`) sets them."""
+    By default BLAS starts a thread per core that spins after every call: in a mask refiner that
+    spinning cost many times the CPU of its own work (docs/experiments.md). A replica's parallelism
+    is the graph's processes; an operator that wants threads for its own work (torch's `threads`) sets them."""
     return threadpool_limits(limits=1, user_api="blas")
 
 

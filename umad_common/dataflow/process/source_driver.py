@@ -208,8 +208,7 @@ class SourceDriver:
         graph is still warming up, that is until `PRIME_QUICK` frames in a row came back within one
         camera period, for at most `PRIME_S` in all (a frame lost then is left to its ack timeout).
         Each process's first frames cost what no later one does (first messages, memory, kernels:
-        0.4-0.9 s from the camera to the result for the first two frames of the live graph on 2
-        cores, 200-500 ms for several more, against 65 ms later), and a camera that went on
+        several times what a later frame takes; docs/experiments.md), and a camera that went on
         meanwhile would have its next frames passed over."""
         host = self.host
         host.stats.primed += 1
@@ -245,8 +244,8 @@ class SourceDriver:
         """Frames sent before every operator subscribed would be lost to them: wait for all tokens,
         every replica's. A replica splits frames with the siblings it sees (seq modulo their
         number), so a frame sent after one replica saw a sibling's token but before that sibling
-        subscribed would be nobody's until its re-send, `ack_timeout_s` later (a 16 s stall in
-        `umad bench scaling` with two VGG16 replicas, when only one replica per operator was awaited)."""
+        subscribed would be nobody's until its re-send, `ack_timeout_s` later (`umad bench scaling`
+        with two VGG16 replicas stalled so while only one replica per operator was awaited)."""
         wanted = {op.id: op.replicas for op in self.graph.spec.operators}
         deadline = time.monotonic() + LIVE_WAIT_S
         while not self.host.shutdown.is_set():

@@ -145,9 +145,9 @@ def open_client(
 
     `direct_links=True`: a peer-mode session instead. It connects to the hub too, learns the other
     peers from it (gossip) and links to them directly over loopback, so what they send each other
-    skips the hub: one process and one socket hop less per message (bare Zenoh chain of three
-    processes on 2 cores, 1 KB messages: 1.4x the messages per second). For replicas on the hub's
-    host only: it listens on 127.0.0.1.
+    skips the hub: one process and one socket hop less per message (more messages per second, most
+    of all for small messages: docs/experiments.md). For replicas on the hub's host only: it listens
+    on 127.0.0.1.
 
     With `cancel` or `timeout_s`, the wait happens off the main thread so a signal can end it, or
     it gives up after `timeout_s`: returns None then. `shared_memory=False` for a session that

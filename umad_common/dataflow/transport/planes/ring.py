@@ -109,7 +109,7 @@ class PayloadRing:
         self.name = ""
         self.previous_name = ""  # the ring this one grew from, kept until the next growth (see `_grow`)
         self._map: mmap.mmap | None = None
-        self._view: memoryview | None = None  # writes through a memoryview copy at twice the speed of mmap's
+        self._view: memoryview | None = None  # writes through a memoryview copy: faster than mmap's own
         self._head = 0
         self._kept: OrderedDict[tuple[str, int], bytes] = OrderedDict()
         self.disabled_because: str | None = None
