@@ -143,6 +143,18 @@ def test_graph_check_refuses_a_missing_graph(refused, tmp_path):
     ]
 
 
+def test_launch_refuses_record_views_it_cannot_load(refused, tmp_path):
+    """The recorder's views are named by import path: a wrong one is refused before anything starts."""
+    text = (REPO / "graph.yaml").read_text().replace("\nname:", "\nrecord_views: nosuch.views:Views\nname:", 1)
+    graph = tmp_path / "g.yaml"
+    graph.write_text(text)
+    [line] = refused("launch", str(graph), "--set", f"replayer.source={REPO / 'graph.yaml'}")
+    assert line == (
+        f"umad launch: {graph}: cannot import module 'nosuch.views' for record_views 'nosuch.views:Views': "
+        "No module named 'nosuch'"
+    )
+
+
 def test_training_refuses_an_output_without_the_suffix(refused, tmp_path):
     drive(tmp_path / "data" / "Scenario_a")
     assert refused("train", "mnad", str(tmp_path / "data"), "--out", "mnad.pt") == [

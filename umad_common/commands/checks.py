@@ -296,9 +296,22 @@ def checked_graph(
     except GraphError as exc:
         raise InputError("\n".join(exc.problems)) from None
     problems = (missing_local_files(graph) if local else []) + (missing_input_files(graph) if runs else [])
+    if local:
+        problems += record_views_problems(graph)
     if problems:
         raise InputError("\n".join(f"{path}: {p}" for p in problems))
     return graph
+
+
+def record_views_problems(graph: Graph) -> list[str]:
+    """The graph's `record_views` when its class cannot be loaded here, where the launcher records."""
+    from umad_common.dataflow.record.recorder import UnknownViewsError, log_views
+
+    try:
+        log_views(graph)
+    except UnknownViewsError as exc:
+        return [str(exc)]
+    return []
 
 
 def print_notice(line: str | None) -> None:
