@@ -1,6 +1,6 @@
 """The recording writers, read back with the libraries that own the formats (rosbags' AnyReader,
 mcap with mcap-ros2-support's and mcap-protobuf-support's decoders, JSON): every topic, type, stamp
-and value the module docstring of `umad_common.datasets.recording_writers` promises, on a hand-made
+and value the package docstring of `umad_common.datasets.writers` promises, on a hand-made
 drive whose answers are known, and one generated AnoVox drive written bit-exactly."""
 
 from __future__ import annotations
@@ -21,16 +21,10 @@ from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 from rosbags.highlevel import AnyReader
 
-from umad_common.datasets.recording_writers import (
-    CLOUD_PADDING_BYTE,
-    PERIOD_NS,
-    START_NS,
-    foxglove_json_schema,
-    write_foxglove_mcap,
-    write_ros2_mcap,
-    write_rosbag2,
-)
 from umad_common.datasets.synthetic.scenario import MAX_ACCEL, MAX_DECEL, MAX_STEER_RAD, WHEELBASE_M
+from umad_common.datasets.writers import CLOUD_PADDING_BYTE, PERIOD_NS, START_NS
+from umad_common.datasets.writers.foxglove import foxglove_json_schema, write_foxglove_mcap
+from umad_common.datasets.writers.ros2 import write_ros2_mcap, write_rosbag2
 
 WIDTH, HEIGHT, FOV = 16, 12, 90.0
 FOCAL = WIDTH / 2 / math.tan(math.radians(FOV) / 2)

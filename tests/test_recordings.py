@@ -16,9 +16,10 @@ from umad_common.datasets.drive import DatasetError, EgoState
 from umad_common.datasets.formats import find_drives, open_drive
 from umad_common.datasets.recording import RecordingDrive
 from umad_common.datasets.recording_messages import Transform, quaternion_matrix
-from umad_common.datasets.recording_writers import write_foxglove_mcap, write_ros2_mcap, write_rosbag2
 from umad_common.datasets.sensor_rig import SensorRig
 from umad_common.datasets.synthetic.generator import generate_benchmark
+from umad_common.datasets.writers.foxglove import write_foxglove_mcap
+from umad_common.datasets.writers.ros2 import write_ros2_mcap, write_rosbag2
 
 SIZE = (96, 64)
 

@@ -5,7 +5,7 @@ One generated drive (768 x 512, `frames` frames) is read in two forms: as `umad 
 writes it (AnoVox generator layout: PNG camera, depth, semantic and instance images, .npy lidar, .csv
 actions; read with `AnoVoxScenario`), and as a rosbag2 written from it (MCAP storage, uncompressed,
 the camera raw `bgra8` as a CARLA camera publishes it, with the lidar, odometry, control, labels, tf and
-camera info: `umad_common.datasets.recording_writers.write_rosbag2`; read with `open_drive`). Each
+camera info: `umad_common.datasets.writers.ros2.write_rosbag2`; read with `open_drive`). Each
 read opens the drive and loads every frame. The two are read alternately, `rounds` times each, so a
 machine whose speed drifts moves both sides alike; frames/s is the best round of each side (the read
 the machine disturbed least), and `fps_ratio_bag` the bag's over AnoVox's (>= 1: the bag is not
@@ -32,8 +32,8 @@ def bench_data(frames: int = 100, rounds: int = 3) -> dict:
     from umad_common.datasets.anovox import AnoVoxScenario
     from umad_common.datasets.drive import SENSOR_MODALITIES
     from umad_common.datasets.formats import open_drive
-    from umad_common.datasets.recording_writers import write_rosbag2
     from umad_common.datasets.synthetic.generator import generate_benchmark
+    from umad_common.datasets.writers.ros2 import write_rosbag2
 
     if frames < 1 or rounds < 1:
         raise ValueError(f"frames = {frames}, rounds = {rounds}; expected at least 1 of each")
