@@ -439,3 +439,112 @@ def test_cli_writes_the_light_stress_set(tmp_path):
     assert weathers == {f"Scenario_{s['scenario_id']}": s["weather"] for s in config["scenarios"]}
     with pytest.raises(SystemExit):
         main(["generate", "synthetic", str(tmp_path / "x"), "--stress", "--stress-light"])
+
+
+def test_facades_stress_plans_show_night_and_the_low_sun_rarely_in_normal_drives_and_always_in_anomalous_ones():
+    from umad_common.datasets.synthetic.generator import STRESS, STRESS_FACADES, STRESS_LIGHT, stress_coverage
+
+    plans = plan_benchmark(16, 8, STRESS_FACADES.seed, stress=STRESS_FACADES)
+    normal = [p.weather for p in plans if p.split == "normal"]
+    anomalous = [p for p in plans if p.split == "anomalous"]
+    assert normal.count("night") == 1 and normal.count("sunset") == 1
+    assert sum(w in {"cloudy", "fog", "rain", "dusk"} for w in normal) == 12  # most under overcast, fog, rain, dusk
+    assert [p.weather for p in anomalous] == ["night", "sunset"] * 4 and all(p.anomaly is not None for p in anomalous)
+    assert stress_coverage(STRESS_FACADES, 16, 8)["normal"] == {w: normal.count(w) for w in (*WEATHER_NAMES, "sunset")}
+    assert STRESS_FACADES.seed == 47 and STRESS_FACADES.sun_side and not STRESS_FACADES.sun_ahead
+    assert STRESS_FACADES.direct_sunlight and STRESS_FACADES.built_up and STRESS_FACADES.pole_spacing is not None
+    for other in (STRESS, STRESS_LIGHT):  # the other sets keep their worlds and light
+        assert not other.sun_side and other.pole_spacing is None and not other.built_up
+    for seed in (STRESS_FACADES.seed, 48):  # the default and the validation seed give other drives than every other set
+        ids = {p.scenario_id for p in plan_benchmark(16, 8, seed, stress=STRESS_FACADES)}
+        assert not ids & {p.scenario_id for p in plan_benchmark(12, 6, 0)}
+        assert not ids & {p.scenario_id for p in plan_benchmark(0, 12, 1)}
+        assert not ids & {p.scenario_id for p in plan_benchmark(12, 8, STRESS.seed, stress=STRESS)}
+        for light_seed in (STRESS_LIGHT.seed, 44):
+            assert not ids & {p.scenario_id for p in plan_benchmark(16, 8, light_seed, stress=STRESS_LIGHT)}
+
+
+def _pole_instances(scenario: SyntheticScenario) -> dict[int, float]:
+    """Pole-only instances (bare poles, lamps' and signs' poles) of the static world: id -> |d| of the pole."""
+    from umad_common.datasets.synthetic.world import KIND_CYLINDER, TAG_POLE
+
+    prims = scenario.static
+    upright = (prims.kind == KIND_CYLINDER) & (prims.tag == TAG_POLE)
+    _, d = scenario.road.to_road(prims.center[upright, 0], prims.center[upright, 1])
+    return dict(zip(prims.inst[upright].tolist(), np.abs(d).tolist(), strict=True))
+
+
+def test_facades_stress_world_has_a_row_of_thin_poles_and_sunlit_facades():
+    from umad_common.datasets.synthetic.generator import STRESS_FACADES, STRESS_WAIT_M
+    from umad_common.datasets.synthetic.scenario import SUN_SIDE_DEG
+    from umad_common.datasets.synthetic.world import POLE_ROW_D, TAG_BUILDING
+
+    for seed, category, weather in ((4, "home", "sunset"), (6, "animal", "night")):
+        kwargs = dict(camera=SMALL, wait_at=STRESS_WAIT_M, direct_sunlight=True)
+        plain = SyntheticScenario(seed, 200, category, weather, **kwargs)
+        facades = SyntheticScenario(
+            seed,
+            200,
+            category,
+            weather,
+            **kwargs,
+            sun_side=True,
+            pole_spacing=STRESS_FACADES.pole_spacing,
+            built_up=True,
+        )
+        before, after = _pole_instances(plain), _pole_instances(facades)
+        row = [d for d in after.values() if abs(d - POLE_ROW_D) < 0.2]
+        length = facades.track.s[-1] + 230.0  # the world spans s = -60 .. s_end + 170
+        assert len(after) >= 2 * len(before), f"seed {seed}: {len(after)} poles against {len(before)}"
+        assert len(row) >= 2 * length / STRESS_FACADES.pole_spacing[1] * 0.8, f"seed {seed}: {len(row)} in the row"
+        assert facades.style.name in ("urban", "suburban")
+        track, anomaly = facades.track, facades.anomaly
+        still = np.flatnonzero(track.speed < 0.05)
+        assert still.size and np.all(track.speed[still[0] :] < 0.05), "the ego must wait to the end of the drive"
+        gap = anomaly.s - max(anomaly.shape.size[:2]) / 2 - track.s[-1]
+        assert 19.0 <= gap <= 41.0, f"seed {seed}: the ego stops {gap:.1f} m before the object, expected 20-40"
+        sun = facades.renderer.sun
+        off = np.degrees(np.abs(np.angle(np.exp(1j * (np.arctan2(sun[1], sun[0]) - facades.pose(199)[2])))))
+        assert SUN_SIDE_DEG[0] - 1e-6 <= off <= SUN_SIDE_DEG[1] + 1e-6, f"seed {seed}: sun {off:.1f} deg off ahead"
+    with pytest.raises(ValueError, match="exclude"):
+        SyntheticScenario(1, 10, "home", camera=SMALL, sun_ahead=True, sun_side=True)
+    # The low sun to the side lights the facades beside the road (their brightest tenth) more than the same sun ahead.
+    lit = {}
+    for where in ("sun_side", "sun_ahead"):
+        scenario = SyntheticScenario(
+            5, 200, "home", "sunset", camera=SMALL, wait_at=STRESS_WAIT_M, direct_sunlight=True, built_up=True,
+            **{where: True},
+        )  # fmt: skip
+        frame = scenario.render(199, with_lidar=False).camera
+        building = frame.semantic == TAG_BUILDING
+        assert building.mean() > 0.05
+        lit[where] = float(np.percentile(frame.rgb[building].mean(axis=1), 90))
+    assert lit["sun_side"] > 1.5 * lit["sun_ahead"], lit
+
+
+def test_cli_writes_the_facades_stress_set_the_same_twice(tmp_path):
+    import json
+
+    from umad_common.cli import main
+
+    args = ["--stress-facades", "--normal", "2", "--anomalous", "2", "--frames", "2", "--size", "64x48"]
+    assert main(["generate", "synthetic", str(tmp_path / "a"), *args, "--preview"]) == 0
+    assert main(["generate", "synthetic", str(tmp_path / "b"), *args, "--workers", "1"]) == 0
+
+    def digests(root: Path) -> dict[str, str]:
+        files = sorted(p for p in root.rglob("*") if p.is_file() and p.name != "preview.png")
+        return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
+
+    first = digests(tmp_path / "a")
+    assert len(first) > 20 and first == digests(tmp_path / "b")
+    config = json.loads(
+        (tmp_path / "a" / "Scenario_Configuration_Files" / "scenario_config_map_Synthetic.json").read_text()
+    )
+    assert config["set"] == "stress_facades" and config["seed"] == 47 and config["wait_m"] == [20.0, 40.0]
+    assert config["direct_sunlight"] is True and config["built_up"] is True and config["pole_spacing_m"] == [6.0, 10.0]
+    assert config["sun_side_deg"] == [95.0, 125.0] and config["sun_ahead_in_anomalous_drives"] is False
+    assert [s["weather"] for s in config["scenarios"]] == ["cloudy", "fog", "night", "sunset"]
+    assert all(s["style"] != "rural" for s in config["scenarios"])
+    assert (tmp_path / "a" / "preview.png").is_file()
+    with pytest.raises(SystemExit):
+        main(["generate", "synthetic", str(tmp_path / "x"), "--stress-light", "--stress-facades"])

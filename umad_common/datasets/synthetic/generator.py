@@ -4,13 +4,19 @@ Output is a pure function of the arguments: scenario seeds, folder uuids and fir
 from one seeded generator, PNGs are written by cv2 (deterministic zlib), files carry no timestamps.
 Normal drives cycle through every weather preset, so a model trained on them has seen each one.
 
-The stress sets (`stress=STRESS` or `STRESS_LIGHT`, each with its own default seed) are what the
-default benchmark never shows. STRESS: normal drives that cover the presets unevenly
+The stress sets (`stress=STRESS`, `STRESS_LIGHT` or `STRESS_FACADES`, each with its own default
+seed) are what the default benchmark never shows. STRESS: normal drives that cover the presets unevenly
 (STRESS_NORMAL_WEATHERS: some in one drive of twelve, clear_noon in none) and anomalous drives,
 mostly under those rare presets, in which the ego brakes early to stand 20-40 m before the object
 and waits there to the end of the drive. STRESS_LIGHT: the direct sun (cast shadows, lane glare) in
 every drive whose sun shows, clear light (clear_noon, sunset) in 3 of 16 normal drives, and
 anomalous drives all under clear light, the ego waiting 20-40 m before the object facing the sun.
+STRESS_FACADES: the light that fails the maps elsewhere, sunlit facades and thin poles. Every drive
+is built up (no rural ones) with a row of bare thin poles along each sidewalk by the curb, the sun
+(direct, cast shadows) to the side and a little behind where the drive ends; normal drives cover the
+presets as the light set's do (night 1, sunset 1 of 16), anomalous drives alternate night and
+sunset (a low sun lighting the facades beside the road), the ego waiting 20-40 m before the object.
+Seeds 44 (light) and 48 (facades) are validation seeds that `umad eval` never evaluates.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ import numpy as np
 from umad_common.datasets.anovox import KMH_PER_MPS, AnoVoxScenario, encode_depth, semantic_to_colour, write_key_values
 from umad_common.datasets.synthetic.anomalies import CATEGORIES
 from umad_common.datasets.synthetic.render import EXTRA_WEATHERS, WEATHER_NAMES, CameraSpec, LidarSpec
-from umad_common.datasets.synthetic.scenario import SyntheticScenario
+from umad_common.datasets.synthetic.scenario import SUN_SIDE_DEG, SyntheticScenario
 
 MOUNT = "(0, 0, 1.8)(0, 0, 0)"
 STRESS_SEED = 30  # the stress set's default master seed
@@ -50,6 +56,15 @@ STRESS_LIGHT_NORMAL_WEATHERS = (
     "cloudy", "sunset", "rain", "dusk", "cloudy", "fog", "clear_noon", "cloudy",
 )  # fmt: skip
 STRESS_LIGHT_ANOMALOUS_WEATHERS = ("sunset", "clear_noon")  # anomalous drives alternate these
+STRESS_FACADES_SEED = 47  # the facades stress set's default master seed (choose on seed 48)
+# Normal drives of the facades stress set cycle through these sixteen, as the light set's cover the
+# presets: cloudy 5, fog 3, rain 2, dusk 2, clear_noon 2, night 1, sunset 1 (the side-lit low sun).
+STRESS_FACADES_NORMAL_WEATHERS = (
+    "cloudy", "fog", "rain", "dusk", "cloudy", "clear_noon", "fog", "night",
+    "cloudy", "rain", "sunset", "dusk", "cloudy", "fog", "clear_noon", "cloudy",
+)  # fmt: skip
+STRESS_FACADES_ANOMALOUS_WEATHERS = ("night", "sunset")  # anomalous drives alternate these
+STRESS_FACADES_POLE_SPACING_M = (6.0, 10.0)  # the bare poles' row (lamps stand 26-36 m apart, signs 60-140 m)
 PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 EGO_TYPE = "vehicle.lincoln.mkz_2020"
 
@@ -64,11 +79,25 @@ class StressSet:
     anomalous_weathers: tuple[str, ...]  # ...and anomalous ones through these
     direct_sunlight: bool  # cast shadows and lane glare in every drive whose sun shows
     sun_ahead: bool  # the sun stands ahead of where the anomalous drives' ego waits
+    sun_side: bool = False  # the sun stands to the side of where every drive ends (lights the facades)
+    pole_spacing: tuple[float, float] | None = None  # metres between bare thin poles by the curb; None: none
+    built_up: bool = False  # no rural drives (their draw gives suburban ones)
 
 
 STRESS = StressSet("stress", STRESS_SEED, STRESS_NORMAL_WEATHERS, STRESS_ANOMALOUS_WEATHERS, False, False)
 STRESS_LIGHT = StressSet(
     "stress_light", STRESS_LIGHT_SEED, STRESS_LIGHT_NORMAL_WEATHERS, STRESS_LIGHT_ANOMALOUS_WEATHERS, True, True
+)
+STRESS_FACADES = StressSet(
+    "stress_facades",
+    STRESS_FACADES_SEED,
+    STRESS_FACADES_NORMAL_WEATHERS,
+    STRESS_FACADES_ANOMALOUS_WEATHERS,
+    direct_sunlight=True,
+    sun_ahead=False,
+    sun_side=True,
+    pole_spacing=STRESS_FACADES_POLE_SPACING_M,
+    built_up=True,
 )
 
 
@@ -285,6 +314,9 @@ def _render_scenario(
         wait_at=STRESS_WAIT_M if stress is not None else None,
         direct_sunlight=stress is not None and stress.direct_sunlight,
         sun_ahead=stress is not None and stress.sun_ahead and plan.anomaly is not None,
+        sun_side=stress is not None and stress.sun_side,
+        pole_spacing=stress.pole_spacing if stress is not None else None,
+        built_up=stress is not None and stress.built_up,
     )
     (out / plan.split).mkdir(parents=True, exist_ok=True)
     return write_scenario(scenario, plan, out / plan.split, on_frame), scenario_record(plan, scenario)
@@ -301,6 +333,12 @@ def _stress_note(stress: StressSet | None, normal: int, anomalous: int) -> dict:
     }
     if stress.direct_sunlight:
         note |= {"direct_sunlight": True, "sun_ahead_in_anomalous_drives": stress.sun_ahead}
+    if stress.sun_side:
+        note |= {"sun_side_deg": list(SUN_SIDE_DEG)}
+    if stress.pole_spacing is not None:
+        note |= {"pole_spacing_m": list(stress.pole_spacing)}
+    if stress.built_up:
+        note |= {"built_up": True}
     return note
 
 

@@ -39,6 +39,10 @@ MAX_STEER_RAD = np.radians(35.0)
 MAX_ACCEL, MAX_DECEL = 2.5, 6.0  # m/s^2 at full throttle / full brake
 LATERAL_ACCEL = 2.0  # comfort limit in curves, m/s^2
 SUN_AHEAD_DEG = (10.0, 40.0)  # with `sun_ahead`, the sun's azimuth lies this far either side of the road ahead
+# With `sun_side`, the sun's azimuth lies this far from the road ahead, to the left or right: to the
+# side and a little behind, so it lights the facades across the road and the building ends facing the
+# camera, and never shines into the camera.
+SUN_SIDE_DEG = (95.0, 125.0)
 ROUTE_SIZE, ROUTE_PX_PER_M, ROUTE_EGO_FROM_BOTTOM, ROUTE_THICKNESS = 192, 5, 40, 16
 
 
@@ -139,6 +143,9 @@ class SyntheticScenario:
         wait_at: tuple[float, float] | None = None,
         direct_sunlight: bool = False,
         sun_ahead: bool = False,
+        sun_side: bool = False,
+        pole_spacing: tuple[float, float] | None = None,
+        built_up: bool = False,
     ):
         """Args:
         weather: a preset's name (render.WEATHERS or render.EXTRA_WEATHERS); None: drawn from WEATHERS.
@@ -151,9 +158,20 @@ class SyntheticScenario:
         sun_ahead: the sun stands SUN_AHEAD_DEG to the left or right of the road's heading where
             the drive ends (where the ego waits before the object), so a low sun faces the camera;
             False: any azimuth. Both draw nothing more from the seed's generator.
+        sun_side: the sun stands SUN_SIDE_DEG to the left or right of that heading, so a low sun
+            lights the facades beside the road rather than facing the camera (the facades stress
+            set); draws nothing more. Not with `sun_ahead`.
+        pole_spacing: (least, most) metres between the bare thin poles of a row along each
+            sidewalk near the curb (world.build_static_world; the facades stress set); None: none.
+        built_up: a drive whose drawn style is rural gets the suburban style instead (the same
+            draw), so buildings line the road (the facades stress set); False: the drawn style.
         """
         if frames < 1:
             raise ValueError(f"frames must be >= 1, got {frames}")
+        if sun_ahead and sun_side:
+            raise ValueError("sun_ahead and sun_side exclude each other")
+        if pole_spacing is not None and not 0 < pole_spacing[0] <= pole_spacing[1]:
+            raise ValueError(f"pole_spacing must be (least, most) metres with 0 < least <= most, got {pole_spacing}")
         if wait_at is not None and not 0 < wait_at[0] <= wait_at[1]:
             raise ValueError(f"wait_at must be (nearest, farthest) metres with 0 < nearest <= farthest, got {wait_at}")
         rng = np.random.default_rng(seed)
@@ -163,7 +181,8 @@ class SyntheticScenario:
             self.weather: Weather = WEATHERS[rng.integers(len(WEATHERS))]
         else:
             self.weather = weather_named(weather)
-        self.style = STYLES[rng.integers(len(STYLES))]
+        style_index = int(rng.integers(len(STYLES)))
+        self.style = STYLES[min(style_index, 1) if built_up else style_index]  # STYLES: urban, suburban, rural
         cruise = rng.uniform(8.0, 11.0)
         reach = frames * FRAME_DT * cruise * 1.2 + 250
         self.road = RoadCurve(rng, reach)
@@ -198,7 +217,9 @@ class SyntheticScenario:
 
         s_end = float(self.track.s[-1])
         keep_clear = [(self.anomaly.s, self.anomaly.d)] if self.anomaly else []
-        self.static, next_inst = build_static_world(rng, self.road, (-60.0, s_end + 170.0), self.style, keep_clear)
+        self.static, next_inst = build_static_world(
+            rng, self.road, (-60.0, s_end + 170.0), self.style, keep_clear, pole_spacing
+        )
         self.movers = self._plan_movers(rng, next_inst, cruise, s_end)
         next_inst += len(self.movers)
         self.anomaly_prims = PrimSet()
@@ -211,6 +232,10 @@ class SyntheticScenario:
         if sun_ahead:  # the same draw, mapped to SUN_AHEAD_DEG either side of the road's end heading
             side = np.sign(sun_azimuth) or 1.0
             offset = np.radians(SUN_AHEAD_DEG[0] + (SUN_AHEAD_DEG[1] - SUN_AHEAD_DEG[0]) * abs(sun_azimuth) / np.pi)
+            sun_azimuth = self.pose(frames - 1)[2] + side * offset
+        elif sun_side:  # the same draw, mapped to SUN_SIDE_DEG either side of the road's end heading
+            side = np.sign(sun_azimuth) or 1.0
+            offset = np.radians(SUN_SIDE_DEG[0] + (SUN_SIDE_DEG[1] - SUN_SIDE_DEG[0]) * abs(sun_azimuth) / np.pi)
             sun_azimuth = self.pose(frames - 1)[2] + side * offset
         self.renderer = Renderer(
             self.road, self.weather, self.camera, self.lidar, seed, sun_azimuth, direct_sunlight=direct_sunlight

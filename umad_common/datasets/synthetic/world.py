@@ -18,6 +18,7 @@ ROAD_HALF_WIDTH = 5.5  # lanes plus a 2 m parking strip on each side
 SIDEWALK_OUTER = 8.5  # sidewalk from the curb (|d| = 5.5) to here, raised by CURB_HEIGHT
 CURB_HEIGHT = 0.15
 PARKING_OFFSET = 4.5  # |d| of parked cars' centres
+POLE_ROW_D = 5.9  # |d| of the bare poles' row (the facades stress set): on the sidewalk just past the curb
 EGO_LANE_D = -LANE_WIDTH / 2  # right-hand traffic: the ego lane is right of the centre line
 ONCOMING_LANE_D = LANE_WIDTH / 2
 
@@ -243,6 +244,13 @@ def sign_parts(rng: np.random.Generator) -> list[Part]:
     ]
 
 
+def pole_parts(rng: np.random.Generator) -> list[Part]:
+    """A bare thin pole (a bollard-like post or a pole without its sign), 2.5-4.5 m tall."""
+    height, radius = rng.uniform(2.5, 4.5), rng.uniform(0.05, 0.08)
+    grey = (0.36, 0.37, 0.39) if rng.random() < 0.5 else (0.55, 0.55, 0.57)
+    return [Part(KIND_CYLINDER, (0, 0, height / 2), (radius, radius, height / 2), TAG_POLE, grey)]
+
+
 @dataclass
 class WorldStyle:
     """How built-up the surroundings are (probabilities per slot along the road)."""
@@ -267,11 +275,15 @@ def build_static_world(
     s_range: tuple[float, float],
     style: WorldStyle,
     keep_clear: list[tuple[float, float]],
+    pole_spacing: tuple[float, float] | None = None,
 ) -> tuple[PrimSet, int]:
     """Buildings, trees, lamps, signs and parked cars along the road.
 
     Args:
         keep_clear: (s, d) points on the road where nothing may be parked within 8 m (anomalies).
+        pole_spacing: (least, most) metres between the bare thin poles of a row on each sidewalk at
+            |d| = POLE_ROW_D, drawn after everything else (the facades stress set); None: no such
+            row, and the world is drawn exactly as before.
 
     Returns:
         The primitives and the next unused instance id.
@@ -286,6 +298,7 @@ def build_static_world(
         inst += 1
 
     s0, s1 = s_range
+    lamps: dict[int, list[float]] = {-1: [], 1: []}
     for side in (-1, 1):
         s = s0 + rng.uniform(0, 10)
         while s < s1:  # building lots
@@ -314,6 +327,7 @@ def build_static_world(
         s = s0 + rng.uniform(0, 30) + (15 if side > 0 else 0)
         while s < s1:  # lamps
             place(lamp_parts(side), s, side * 6.0)
+            lamps[side].append(s)
             s += rng.uniform(26, 36)
         s = s0 + rng.uniform(0, 40)
         while s < s1:  # signs
@@ -333,4 +347,11 @@ def build_static_world(
                 s += rng.uniform(5.5, 8)
             else:
                 s += rng.uniform(6, 18)
+    if pole_spacing is not None:
+        for side in (-1, 1):
+            s = s0 + rng.uniform(0, pole_spacing[1])
+            while s < s1:  # bare poles, none where a lamp's pole stands
+                if all(abs(s - lamp_s) > 1.0 for lamp_s in lamps[side]):
+                    place(pole_parts(rng), s, side * (POLE_ROW_D + rng.uniform(-0.1, 0.1)))
+                s += rng.uniform(*pole_spacing)
     return PrimSet.concat(sets), inst
