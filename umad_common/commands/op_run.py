@@ -24,4 +24,6 @@ def run(args) -> int:
 
     from umad_common.dataflow.process.replica import run_operator
 
-    run_operator(graph, args.id, args.replica, args.connect, cert=args.cert, key=args.key)  # ends the process
+    run_operator(
+        graph, args.id, replica=args.replica, connect=args.connect, cert=args.cert, key=args.key
+    )  # ends the process

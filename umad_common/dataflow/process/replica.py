@@ -28,6 +28,7 @@ log = logging.getLogger("umad.runtime")
 def run_operator(
     graph: Graph,
     op_id: str,
+    *,
     replica: int = 0,
     connect: str | None = None,
     max_frames: int | None = None,
@@ -138,13 +139,13 @@ def main(argv: list[str] | None = None) -> int:
     run_operator(
         graph,
         args.op,
-        args.replica,
-        args.connect,
-        args.max_frames,
-        args.replay_log,
-        args.allow_truncated,
-        args.cert,
-        args.key,
+        replica=args.replica,
+        connect=args.connect,
+        max_frames=args.max_frames,
+        replay_log=args.replay_log,
+        allow_truncated=args.allow_truncated,
+        cert=args.cert,
+        key=args.key,
     )
 
 
