@@ -169,7 +169,7 @@ def write_custom_bag(path: Path, messages: list[tuple[str, str, object]]) -> Pat
     """A rosbag2 MCAP bag of (topic, type, message) written at 10 Hz, each topic's n-th message at n x 100 ms."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from umad_common.datasets.recording import ros_typestore
+    from umad_common.datasets.recording_stores import ros_typestore
 
     store = ros_typestore()
     counts: dict[str, int] = {}
@@ -185,7 +185,7 @@ def write_custom_bag(path: Path, messages: list[tuple[str, str, object]]) -> Pat
 
 
 def ros_image(encoding: str = "rgb8", width: int = 4, height: int = 2):
-    from umad_common.datasets.recording import ros_typestore
+    from umad_common.datasets.recording_stores import ros_typestore
 
     t = ros_typestore().types
     channels = {"rgb8": 3, "bgra8": 4, "mono8": 1, "yuv422": 2}[encoding]
@@ -197,7 +197,7 @@ def ros_image(encoding: str = "rgb8", width: int = 4, height: int = 2):
 
 
 def ros_cloud(big_endian: bool):
-    from umad_common.datasets.recording import ros_typestore
+    from umad_common.datasets.recording_stores import ros_typestore
 
     t = ros_typestore().types
     header = t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="lidar")

@@ -20,7 +20,8 @@ from pathlib import Path
 
 from umad_common.datasets.anovox import AnoVoxScenario, is_scenario_dir
 from umad_common.datasets.drive import LABEL_MODALITIES, SENSOR_MODALITIES, STORAGE_SUFFIXES, DatasetError, Drive
-from umad_common.datasets.recording import RecordingDrive, is_recording
+from umad_common.datasets.recording import RecordingDrive
+from umad_common.datasets.recording_stores import is_recording
 
 DriveOpener = Callable[..., Drive]  # (path, every, topics, keep, allow_truncated) -> Drive
 

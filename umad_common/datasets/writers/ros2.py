@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from umad_common.datasets.recording import ros_typestore
+from umad_common.datasets.recording_stores import ros_typestore
 from umad_common.datasets.synthetic.scenario import MAX_ACCEL, MAX_DECEL, MAX_STEER_RAD, WHEELBASE_M
 from umad_common.datasets.writers import (
     BASE_FRAME,
