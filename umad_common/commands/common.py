@@ -56,37 +56,25 @@ def add_out_argument(
 
 
 def _add_count_argument(
-    parser: argparse.ArgumentParser, flag: str, phrase: str, default: int | None, help: str | None, shown: int | None
+    parser: argparse.ArgumentParser, flag: str, phrase: str, default: int | None, help: str | None
 ) -> None:
-    """An integer `flag`, its help `help`, else `phrase (default N)`: N is `default`, or `shown` where
-    `default` is None because the verb's own config fills it in."""
-    if help is None:
-        named = default if default is not None else shown
-        if named is None:
-            raise ValueError(f"{flag}: a help text, a default or the default shown is needed")
-        help = f"{phrase} (default {named})"
-    parser.add_argument(flag, type=int, default=default, help=help)
+    """An integer `flag`, its help `help`, else `phrase (default N)`."""
+    parser.add_argument(flag, type=int, default=default, help=help or f"{phrase} (default {default})")
 
 
-def add_seed_argument(
-    parser: argparse.ArgumentParser, default: int | None = 0, help: str | None = None, shown: int | None = None
-) -> None:
+def add_seed_argument(parser: argparse.ArgumentParser, default: int | None = 0, help: str | None = None) -> None:
     """`--seed N` (default help: `random seed (default N)`)."""
-    _add_count_argument(parser, "--seed", "random seed", default, help, shown)
+    _add_count_argument(parser, "--seed", "random seed", default, help)
 
 
-def add_frames_argument(
-    parser: argparse.ArgumentParser, default: int | None, help: str | None = None, shown: int | None = None
-) -> None:
+def add_frames_argument(parser: argparse.ArgumentParser, default: int | None, help: str | None = None) -> None:
     """`--frames N` (default help: a training verb's frame budget, spread over its drives)."""
-    _add_count_argument(parser, "--frames", "at most this many frames, spread over all scenarios", default, help, shown)
+    _add_count_argument(parser, "--frames", "at most this many frames, spread over all scenarios", default, help)
 
 
-def add_epochs_argument(
-    parser: argparse.ArgumentParser, default: int | None, help: str | None = None, shown: int | None = None
-) -> None:
+def add_epochs_argument(parser: argparse.ArgumentParser, default: int | None, help: str | None = None) -> None:
     """`--epochs N` (default help: passes over the frames a training verb loaded)."""
-    _add_count_argument(parser, "--epochs", "passes over the loaded frames", default, help, shown)
+    _add_count_argument(parser, "--epochs", "passes over the loaded frames", default, help)
 
 
 def add_graph_argument(parser: argparse.ArgumentParser, positional: bool = False) -> None:

@@ -33,9 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_topics_argument(parser)
     add_out_argument(parser)
     # left None: SegmenterTrainingConfig's defaults apply, and `command_line` records only the flags given
-    add_epochs_argument(parser, None, shown=4)
-    add_seed_argument(parser, None, shown=0)
-    add_frames_argument(parser, None, shown=1200)
+    add_epochs_argument(parser, None, help="passes over the loaded frames (default 4)")
+    add_seed_argument(parser, None, help="random seed (default 0)")
+    add_frames_argument(parser, None, help="at most this many frames, spread over all scenarios (default 1200)")
     parser.add_argument("--batch-size", type=int, default=None, help="frames per step (default 8)")
     parser.add_argument("--clusters", type=int, default=None, help="prototypes, i.e. segment classes (default 24)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (results depend on it)")
