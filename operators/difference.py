@@ -120,7 +120,8 @@ class Difference(Operator):
         if self.scale is not None:
             meta["calibration_scale"] = self.scale
         meta.update(self.metric.notes(pred_valid))
-        return {"map": Output({"map": np.ascontiguousarray(score, dtype=np.float32)}, meta)}
+        arrays = {"map": np.ascontiguousarray(score, dtype=np.float32), **self.metric.side_arrays(score.shape, lidar)}
+        return {"map": Output(arrays, meta)}
 
     def no_data(self, frame: Frame, shape: tuple[int, int], lidar: RangePairs | None) -> Output:
         """A lidar metric's frame without returns to compare: a map of zeros marked `no_data` (fusion and

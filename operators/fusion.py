@@ -5,6 +5,8 @@ live for the frame, waiting for all expected ones up to `deadline_ms` in live mo
 lossless mode. A metric that joins or leaves mid-stream is fused in or out from that frame on; new
 weights set through the control key (`umad set fusion.weights.ssim=0.5`) apply from the next frame.
 A map marked `no_data` (the lidar difference of a frame without lidar returns) is left out the same way.
+With `above_lidar_weight` below 1, the other maps count that much at the pixels the lidar map marks
+`above_returns` (the sky and what the lidar's beams do not reach; ours).
 The arithmetic (and the rule for absent metrics) is `umad_common.refine.fuse`.
 """
 
@@ -14,7 +16,8 @@ from pydantic import Field, field_validator
 
 from umad_common.dataflow import Frame, Input, JoinParams, Operator, Output, input_array
 from umad_common.dataflow.api.messages import Message
-from umad_common.refine import fuse, used_weights
+from umad_common.differences import ABOVE_RETURNS_ARRAY
+from umad_common.refine import fuse, used_weights, weigh_down_above_lidar
 
 DEFAULT_WEIGHTS = {"abs": 0.2, "mse": 0.2, "ssim": 0.2, "perceptual": 0.2, "temporal": 0.2}  # difference `metric` names
 
@@ -35,6 +38,15 @@ class FusionParams(JoinParams):
                 raise ValueError(f"weight of metric {metric!r} is {weight}; expected a value in [0, 1]")
         return weights
 
+    above_lidar_weight: float = Field(
+        1.0,
+        ge=0.0,
+        le=1.0,
+        description="factor on every other map at the pixels a map marks `above_returns` (the lidar difference: "
+        "above every lidar return near the column, the sky and what the beams do not reach); 1 leaves the maps "
+        "as they are (the paper's fusion)",
+    )
+
 
 def metric_of(producer: str, msg: Message) -> str:
     """The metric a difference map measures: its meta 'metric', else the producing operator's id."""
@@ -54,6 +66,7 @@ class Fusion(Operator):
         if not received:
             raise ValueError(f"fusion {frame.frame_id}: no difference maps in input 'maps'; expected at least one")
         maps = {}
+        above = None  # (metric, mask): the map that marks the pixels above the lidar's returns
         for producer in sorted(received):
             msg = received[producer]
             if msg.meta.get("no_data"):
@@ -65,7 +78,11 @@ class Fusion(Operator):
                     f"({sorted(p for p in received if metric_of(p, received[p]) == metric)}); expected one map per metric"
                 )
             maps[metric] = input_array(frame, "maps", "map", self.kind, producer)
+            if ABOVE_RETURNS_ARRAY in msg.arrays:
+                above = (metric, input_array(frame, "maps", ABOVE_RETURNS_ARRAY, self.kind, producer))
         weights = self.params.weights
+        if above is not None:
+            maps = weigh_down_above_lidar(maps, above[1], above[0], self.params.above_lidar_weight)
         fused = fuse(maps, weights)
         used = used_weights(set(maps), weights)
         meta = {
@@ -74,4 +91,6 @@ class Fusion(Operator):
             "ignored": sorted(set(maps) - set(used)),
             "partial": bool(frame.partial),
         }
+        if above is not None:
+            meta["above_lidar_weight"] = self.params.above_lidar_weight
         return {"fused": Output({"map": fused}, meta)}

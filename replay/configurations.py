@@ -38,6 +38,7 @@ class WeightRow:
     extra: bool = False  # True: a row of ours, not in the paper's table
     normalization: str = "minmax"  # of the maps it fuses: minmax (as logged, the paper's) or robust (ours)
     every_mode: bool = False  # True: every refinement scored whatever the maps (the shipped row added last)
+    above_lidar_weight: float = 1.0  # the camera maps' factor above the lidar's returns (fusion's, ours); 1: none
 
     @property
     def modes(self) -> tuple[str, ...]:
@@ -108,7 +109,10 @@ def shipped_row_index(rows: list[WeightRow], shipped: dict | None) -> int | None
         (
             i
             for i, row in enumerate(rows)
-            if row.normalization == "minmax" and row.weights == weights and row.scores(shipped["mode"])
+            if row.normalization == "minmax"
+            and row.weights == weights
+            and row.above_lidar_weight == shipped.get("above_lidar_weight", 1.0)
+            and row.scores(shipped["mode"])
         ),
         None,
     )
@@ -118,7 +122,8 @@ def with_shipped_row(rows: list[WeightRow], shipped: dict | None) -> list[Weight
     """`rows`, and the shipped weights as one more row (every refinement scored) where none has them."""
     if shipped_weights(shipped) is None or shipped_row_index(rows, shipped) is not None:
         return rows
-    return [*rows, WeightRow(shipped_weights(shipped), extra=True, every_mode=True)]
+    above = shipped.get("above_lidar_weight", 1.0)
+    return [*rows, WeightRow(shipped_weights(shipped), extra=True, every_mode=True, above_lidar_weight=above)]
 
 
 @dataclass(frozen=True)

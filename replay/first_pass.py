@@ -18,7 +18,7 @@ import numpy as np
 
 from umad_common.metrics.diagnosis import Diagnosis
 from umad_common.metrics.pixel import LabelledPixels, PixelMetrics
-from umad_common.refine import fuse, resize_nearest
+from umad_common.refine import resize_nearest
 from umad_replay.configurations import (
     LIDAR,
     PAPER_METRICS,
@@ -29,7 +29,7 @@ from umad_replay.configurations import (
     with_shipped_row,
 )
 from umad_replay.frames import FrameRecord, LogStats, frames_from_log
-from umad_replay.row_scoring import MaskSet, PaintedMap, model_size_inputs, normalised_maps
+from umad_replay.row_scoring import MaskSet, PaintedMap, model_size_inputs, normalised_maps, row_fused_map
 from umad_replay.shares import dealt
 
 
@@ -121,8 +121,7 @@ class Sweep:
             self.rows_seen.add(i)
             if not self.owns(i):
                 continue
-            weights = {m: float(w) for m, w in self.rows[i].weights.items()}
-            fused = fuse({m: maps[self.rows[i].normalization][m] for m in weights}, weights, shape)
+            fused = row_fused_map(maps[self.rows[i].normalization], self.rows[i], frame, shape)
             self._count(Config(i, None, "none"), fused, pixels)
             if i == self.default_row:
                 self._scenario(frame.run, "no mask").update_labelled(fused, pixels)

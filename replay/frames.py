@@ -4,7 +4,8 @@ A log (umad_common/dataflow/record/mcap_log.py) holds each bus message's exact p
 
 - `<replayer>/truth`    -> the anomaly labels (0/1/255) and the semantic tags;
 - `<world_model>/frame` -> target and reconstruction (kept as uint8, for the overlay pictures);
-- `<op>/map` with meta `metric` -> one normalised difference map per metric (aliases pd/td accepted);
+- `<op>/map` with meta `metric` -> one normalised difference map per metric (aliases pd/td accepted),
+  and the lidar map's `above_returns` mask (where the shipped fusion may weigh the camera maps down);
 - `<segmenter>/masks`   -> (K, h, w) bool masks per segmenter operator (meta `method`), bit-packed;
 - `<op>/map` with meta `model: mnad` (or op id `mnad`) -> the MNAD baseline's L2 map.
 
@@ -26,6 +27,7 @@ import numpy as np
 from umad_common.dataflow.api.messages import MessageError, decode
 from umad_common.dataflow.record.mcap_log import LogError, read_log
 from umad_common.datasets.anovox import ANOMALY_TAGS
+from umad_common.differences import ABOVE_RETURNS_ARRAY
 
 METRIC_ALIASES = {"pd": "perceptual", "td": "temporal", "l1": "abs", "l2": "mse"}
 WANTED_OUTPUTS = ("truth", "frame", "map", "masks")
@@ -60,6 +62,7 @@ class FrameRecord:
     target: np.ndarray | None = None  # (h, w, 3) uint8
     recon: np.ndarray | None = None  # (h, w, 3) uint8
     diffs: dict[str, np.ndarray] = field(default_factory=dict)  # canonical metric -> (h, w) float32
+    above_lidar: np.ndarray | None = None  # (h, w) bool: the lidar map's `above_returns`, where it sent one
     masks: dict[str, PackedMasks] = field(default_factory=dict)  # segmenter op -> (K, h, w) bool, packed
     mnad: np.ndarray | None = None  # (h', w') float32
     anomaly_tags: tuple[int, ...] = ()  # semantic tags under the anomaly pixels (AnoVox categories)
@@ -166,6 +169,8 @@ def _fill(record: FrameRecord, op: str, output: str, msg, stats: LogStats) -> No
         if "metric" in meta:
             metric = canonical_metric(str(meta["metric"]))
             record.diffs[metric] = np.array(arrays["map"], dtype=np.float32)
+            if ABOVE_RETURNS_ARRAY in arrays:
+                record.above_lidar = np.array(arrays[ABOVE_RETURNS_ARRAY], dtype=bool)
             stats.map_notes.setdefault(metric, {k: meta[k] for k in ("normalization", "extractor") if k in meta})
         elif meta.get("model") == "mnad" or op == "mnad":
             record.mnad = np.array(arrays["map"], dtype=np.float32)

@@ -21,15 +21,26 @@ from umad_common.refine import (
     fuse,
     only_the_best,
     resize_nearest,
+    weigh_down_above_lidar,
     with_pixel_share,
 )
-from umad_replay.configurations import REFINE_MODES, Config, WeightRow
+from umad_replay.configurations import LIDAR, REFINE_MODES, Config, WeightRow
 from umad_replay.frames import FrameRecord
 
 
 def normalised_maps(diffs: dict[str, np.ndarray], normalization: str) -> dict[str, np.ndarray]:
     """A frame's logged (min-max) difference maps as a row of that normalization fuses them."""
     return diffs if normalization == "minmax" else {m: robust(d) for m, d in diffs.items()}
+
+
+def row_fused_map(
+    maps: dict[str, np.ndarray], row: WeightRow, frame: FrameRecord, shape: tuple[int, int]
+) -> np.ndarray:
+    """One row's fused map of a frame from its normalised `maps`, as the fusion operator makes it
+    (the camera maps weighed down above the lidar's returns where the row does that)."""
+    weights = {m: float(w) for m, w in row.weights.items()}
+    row_maps = weigh_down_above_lidar({m: maps[m] for m in weights}, frame.above_lidar, LIDAR, row.above_lidar_weight)
+    return fuse(row_maps, weights, shape)
 
 
 def model_size_inputs(frame: FrameRecord) -> tuple[tuple[int, int], np.ndarray, dict[str, np.ndarray]]:
@@ -225,9 +236,9 @@ def configuration_map(
     None when the frame lacks a map or mask it needs."""
     if not set(row.weights) <= set(frame.diffs) or (config.segmenter is not None and config.segmenter not in mask_sets):
         return None
-    float_weights = {m: float(w) for m, w in row.weights.items()}
-    maps = normalised_maps({m: frame.diffs[m] for m in float_weights}, row.normalization)
-    fused = fuse(maps, float_weights, shape)
+    fused = row_fused_map(
+        normalised_maps({m: frame.diffs[m] for m in row.weights}, row.normalization), row, frame, shape
+    )
     if config.segmenter is None:
         return fused
     return mask_sets[config.segmenter].refine_all(fused, (config.mode,))[config.mode]

@@ -92,7 +92,9 @@ class SweepResult:
     def row_label(self, row: int) -> str:
         label = weights_label(self.rows[row].weights)
         normalization = self.rows[row].normalization
-        return label if normalization == "minmax" else f"{label}, {normalization}"
+        label = label if normalization == "minmax" else f"{label}, {normalization}"
+        above = self.rows[row].above_lidar_weight
+        return label if above == 1.0 else f"{label}, camera ×{above:g} above the lidar"
 
     def _ops_in_order(self) -> list[str]:
         rank = {"gt": 0, "sam": 2}

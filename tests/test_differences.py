@@ -568,3 +568,43 @@ def test_the_ssim_window_filter_gives_scipys_numbers():
     np.testing.assert_allclose(
         metric._blur(stack), correlate1d(rows, metric.kernel, axis=2, mode="reflect"), atol=1e-14
     )
+
+
+def test_the_lidar_map_marks_the_pixels_above_its_returns_and_fusion_weighs_the_camera_down_there():
+    from umad_common.differences import ABOVE_RETURNS_ARRAY, above_returns
+    from umad_operators.difference import Difference
+    from umad_operators.fusion import Fusion
+
+    top = above_returns(np.array([[10, 5], [14, 5], [12, 20]], np.int32), (20, 30))
+    assert top[7, 5] and not top[8, 5]  # more than 2 rows above the topmost return of column 5
+    assert top[7, 3] and top[7, 7] and not top[8, 7]  # the columns within 2 of it share its top
+    assert top[17, 0] and top[17, 29] and not top[18, 0]  # no return within 2 columns: as one below the image
+    assert top[9, 18] and not top[10, 18] and not top[10, 22] and top[10, 23]
+
+    target, recon, preds, valid = random_frame(h=20, w=30)
+    lidar = {
+        "lidar_pixel": np.array([[10, 5], [14, 5], [12, 20]], np.int32),
+        "lidar_range": np.full(3, 10.0, np.float32),
+        "lidar_expected": np.full(3, 10.0, np.float32),
+    }
+    frame_msg = Message(
+        "run", 0, arrays={"target": target, "recon": recon, "preds": preds, "pred_valid": valid, **lidar}
+    )
+    outputs = {
+        op_id: Difference({"metric": metric}).process(Frame("run", 0, 0, inputs={"frame": frame_msg}))["map"]
+        for op_id, metric in (("diff_abs", "abs"), ("diff_lidar", "lidar"))
+    }
+    assert ABOVE_RETURNS_ARRAY not in outputs["diff_abs"].arrays
+    np.testing.assert_array_equal(outputs["diff_lidar"].arrays[ABOVE_RETURNS_ARRAY], top.astype(np.uint8))
+    maps = {op_id: Message("run", 0, meta=out.meta, arrays=out.arrays) for op_id, out in outputs.items()}
+    camera = outputs["diff_abs"].arrays["map"]
+    for weight in (1.0, 0.25):
+        fusion = Fusion({"weights": {"abs": 0.5, "lidar": 0.5}, "above_lidar_weight": weight})
+        fused = fusion.process(Frame("run", 0, 0, many={"maps": maps}))["fused"]
+        expected = (np.where(top, weight * camera, camera) + outputs["diff_lidar"].arrays["map"]) / 2
+        np.testing.assert_allclose(fused.arrays["map"], expected, rtol=1e-6)
+        assert fused.meta["above_lidar_weight"] == weight
+    without_lidar = Fusion({"weights": {"abs": 0.5}, "above_lidar_weight": 0.25})
+    alone = without_lidar.process(Frame("run", 0, 0, many={"maps": {"diff_abs": maps["diff_abs"]}}))["fused"]
+    np.testing.assert_array_equal(alone.arrays["map"], camera)  # nothing marks the pixels: the map as it is
+    assert "above_lidar_weight" not in alone.meta

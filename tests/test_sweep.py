@@ -796,6 +796,52 @@ def test_the_shipped_configuration_is_scored_and_leads_the_report(tmp_path):
     assert "shipped masks A / B" in (b / "compare.md").read_text()
 
 
+ABOVE_LIDAR_GRAPH = SHIPPED_GRAPH.replace(
+    "params: {weights: {abs: 0.5, ssim: 0.5, perceptual: 0.0}}",
+    "params: {weights: {abs: 0.5, ssim: 0.5, lidar: 0.5}, above_lidar_weight: 0.25}",
+)
+
+
+def with_lidar_maps(frames, seed=7):
+    """`frames` with a lidar difference map each, marking its top three rows as above the lidar's returns."""
+    rng = np.random.default_rng(seed)
+    above = np.zeros((h, w), np.uint8)
+    above[:3] = 1
+    for run, seq, msgs, truth in frames:
+        lidar = rng.random((h, w)).astype(np.float32)
+        truth["lidar_message"] = Message(
+            run, seq, meta={"metric": "lidar"}, arrays={"map": lidar, "above_returns": above}
+        )
+        yield run, seq, [*msgs, ("diff_lidar", "map", truth["lidar_message"].arrays, {"metric": "lidar"})], truth
+
+
+def test_the_shipped_row_weighs_the_camera_down_above_the_lidar_as_the_fusion_operator_does(tmp_path):
+    from umad_common.dataflow import Frame
+    from umad_operators.fusion import Fusion
+
+    path = tmp_path / "run.mcap"
+    metadata = {"graph": ABOVE_LIDAR_GRAPH, "base_dir": str(tmp_path), "version": "t"}
+    truths = write_log(path, with_lidar_maps(synthetic_frames()), metadata)
+    result = sweep_log(path, progress=False, overlay_frames=0, components=False)
+    assert result.rows[result.shipped.row].above_lidar_weight == 0.25
+    assert result.row_label(result.shipped.row) == "abs+ssim (1/2) + lidar 1/3, camera ×0.25 above the lidar"
+
+    def graph_map(t, above_lidar_weight):
+        fusion = Fusion({"weights": {"abs": 0.5, "ssim": 0.5, "lidar": 0.5}, "above_lidar_weight": above_lidar_weight})
+        maps = {
+            op: Message("r", 0, meta={"metric": METRIC_OPS[op]}, arrays={"map": t["maps"][op]})
+            for op in ("diff_abs", "diff_ssim")
+        }
+        maps["diff_lidar"] = t["lidar_message"]
+        fused = fusion.process(Frame("r", 0, 0, many={"maps": maps}))["fused"].arrays["map"]
+        return refined_mean(fused, t["tiles"])
+
+    scores = result.metrics[result.shipped].compute()
+    assert (scores["AP"], scores["AUROC"]) == pytest.approx(direct(truths, lambda t: graph_map(t, 0.25)), abs=2e-3)
+    plain = direct(truths, lambda t: graph_map(t, 1.0))
+    assert (scores["AP"], scores["AUROC"]) != pytest.approx(plain, abs=2e-3)  # the weighing down changes the figures
+
+
 def test_a_shipped_configuration_that_is_a_row_of_the_table_adds_none():
     from umad_replay.configurations import shipped_row_index, with_shipped_row
 

@@ -12,6 +12,10 @@ Rules (docs/design.md, "Fusion" and "Mask-level refinement"):
   weight simply drops out and the frame stays on the same [0, 1] scale instead of being deflated.
   A weight whose metric is absent is ignored; a map whose metric has no weight, or weight 0, does
   not contribute. If no present metric has a positive weight the fused map is all zeros.
+- `weigh_down_above_lidar` (ours, before `fuse`): every map but the one that marks them is multiplied
+  by `weight` at the pixels the lidar difference marks `above_returns` (above every lidar return
+  near their column: the sky, and what the beams do not reach), where a camera map's disagreement
+  is the light's and no object on the road stands.
 - `refine` scores each mask by the `mean` (paper default) or `max` of the fused map over its pixels
   and writes that score to every pixel of the mask. Where masks overlap, the highest score wins.
   `single` (the paper's single mask) keeps only the mask with the highest mean score and gives
@@ -103,6 +107,25 @@ def fuse(
     if total_weight > 0:
         fused /= total_weight
     return fused.astype(np.float32)
+
+
+def weigh_down_above_lidar(
+    maps: Mapping[str, np.ndarray], above: np.ndarray | None, marked_by: str, weight: float
+) -> dict[str, np.ndarray]:
+    """`maps` with every map but `marked_by`'s multiplied by `weight` where `above` (an (h, w) mask,
+    resized nearest to each map) is set; unchanged where `above` is None or `weight` is 1."""
+    if above is None or weight >= 1.0:
+        return dict(maps)
+    if np.ndim(above) != 2:
+        raise ValueError(f"weigh_down_above_lidar: the mask has shape {np.shape(above)}; expected (h, w)")
+    out = {}
+    for metric, score_map in maps.items():
+        if metric == marked_by:
+            out[metric] = score_map
+            continue
+        mask = resize_nearest(np.asarray(above, dtype=bool), np.shape(score_map))
+        out[metric] = np.where(mask, np.float32(weight) * score_map, score_map).astype(np.float32)
+    return out
 
 
 def used_weights(metrics: list[str] | set[str], weights: Mapping[str, float]) -> dict[str, float]:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from umad_common.dataflow.api.plugins import registered_class
 from umad_common.differences.metrics import (
+    ABOVE_RETURNS_ARRAY,
     AbsDifference,
     DifferenceInputError,
     DifferenceMetric,
@@ -23,6 +24,7 @@ from umad_common.differences.metrics import (
     ShiftedSsimDifference,
     SsimDifference,
     TemporalDifference,
+    above_returns,
     range_pairs,
     validate_frame,
 )
@@ -62,6 +64,7 @@ def build_metric(name: str, options: MetricOptions | None = None) -> DifferenceM
 
 
 __all__ = [
+    "ABOVE_RETURNS_ARRAY",
     "METRICS",
     "AbsDifference",
     "Calibration",
@@ -77,6 +80,7 @@ __all__ = [
     "SsimDifference",
     "TemporalDifference",
     "UnknownMetricError",
+    "above_returns",
     "build_metric",
     "calibrated",
     "load_calibration",

@@ -16,7 +16,7 @@ from typing import Any, ClassVar, NamedTuple, NoReturn
 
 import cv2
 import numpy as np
-from scipy.ndimage import distance_transform_edt
+from scipy.ndimage import distance_transform_edt, minimum_filter1d
 
 
 class DifferenceInputError(ValueError):
@@ -64,6 +64,7 @@ def validate_frame(target: np.ndarray, recon: np.ndarray, preds: np.ndarray, pre
 
 RANGE_PAIR_ARRAYS = ("lidar_pixel", "lidar_range", "lidar_expected")  # `RangePairs`' arrays in a `frame`
 EXPECTED_HEIGHT_ARRAY = "lidar_expected_height"  # its optional fourth (a frame of an older world model lacks it)
+ABOVE_RETURNS_ARRAY = "above_returns"  # the lidar map message's (h, w) uint8: 1 above every return near the column
 
 
 class RangePairs(NamedTuple):
@@ -139,6 +140,10 @@ class DifferenceMetric:
 
     def notes(self, pred_valid: np.ndarray) -> dict[str, Any]:
         """Extra metadata for this frame's output message (e.g. how many predictions were used)."""
+        return {}
+
+    def side_arrays(self, shape: tuple[int, int], lidar: RangePairs | None) -> dict[str, np.ndarray]:
+        """Arrays this frame's output message carries beside its map (the lidar's `above_returns`)."""
         return {}
 
     def __call__(
@@ -353,3 +358,22 @@ class LidarDifference(DifferenceMetric):
         seen[lidar.pixel[:, 0], lidar.pixel[:, 1]] = True
         distance, (rows, cols) = distance_transform_edt(~seen, return_indices=True)
         return np.where(distance <= self.fill_px, blocked[rows, cols], 0.0).astype(np.float32)
+
+    def side_arrays(self, shape: tuple[int, int], lidar: RangePairs | None) -> dict[str, np.ndarray]:
+        """`above_returns`: where fusion may weigh the camera maps down (its `above_lidar_weight`)."""
+        return {ABOVE_RETURNS_ARRAY: above_returns(lidar.pixel, shape).astype(np.uint8)}
+
+
+def above_returns(
+    pixel: np.ndarray, shape: tuple[int, int], margin_px: float = 2.0, column_reach: int = 2
+) -> np.ndarray:
+    """(h, w) bool: the pixels more than `margin_px` rows above the topmost lidar return of their
+    column and of the `column_reach` columns either side (a column without returns counts as the
+    image's bottom). There the lidar found nothing standing within its range (the sky), or its beams
+    do not reach (above the top beam); an object on the road has returns on it and lies below.
+    `pixel`: (n, 2) rows and columns, as `RangePairs.pixel`."""
+    h, w = shape
+    top = np.full(w, h, np.int64)
+    np.minimum.at(top, pixel[:, 1], pixel[:, 0])
+    top_near = minimum_filter1d(top, size=2 * column_reach + 1, mode="nearest")
+    return np.arange(h)[:, None] < (top_near[None, :] - margin_px)

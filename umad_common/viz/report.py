@@ -69,6 +69,7 @@ def table_rows(result: SweepResult) -> list[dict[str, Any]]:
                 "extra": result.rows[config.row].extra or label not in paper,
                 "extra_weights": result.rows[config.row].extra,
                 "normalization": result.rows[config.row].normalization,
+                "above_lidar_weight": result.rows[config.row].above_lidar_weight,
                 "segmenter": config.segmenter,
                 "mode": config.mode,
                 "AP": _number(scores["AP"]),
@@ -145,9 +146,13 @@ def _fractions(weights: dict[str, float]) -> list[str]:
 
 
 def _normalization_note(row: dict[str, Any]) -> str:
-    """`, robust` for a row fused from robust-normalised maps; nothing for the paper's min-max."""
+    """`, robust` for a row fused from robust-normalised maps, `, camera ×w above the lidar` for one
+    whose camera maps fusion weighed down above the lidar's returns; nothing for the paper's fusion."""
     normalization = row.get("normalization", "minmax")
-    return "" if normalization == "minmax" else f", {normalization}"
+    above = row.get("above_lidar_weight", 1.0)
+    return ("" if normalization == "minmax" else f", {normalization}") + (
+        "" if above == 1.0 else f", camera ×{above:g} above the lidar"
+    )
 
 
 def _row_name(row: dict[str, Any]) -> str:
