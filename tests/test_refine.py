@@ -225,6 +225,14 @@ def test_fusion_rejects_bad_weights_and_inputs():
         Fusion({"weights": {"ssim": 1.5}})
     with pytest.raises(ValidationError):
         Fusion({"weight": {"ssim": 0.5}})
+    with pytest.raises(ValidationError, match="above_lidar_weight"):
+        Fusion({"above_lidar_weight": 1.5})
+    bad_mask = map_msg(0, "lidar", 0.5)
+    bad_mask.arrays["above_returns"] = np.ones((2, 2, 2), np.uint8)
+    with pytest.raises(ValueError, match=r"the mask has shape \(2, 2, 2\); expected \(h, w\)"):
+        Fusion({"above_lidar_weight": 0.5}).process(
+            fusion_frame(0, {"diff_lidar": bad_mask, "diff_abs": map_msg(0, "abs", 0.1)})
+        )
     op = Fusion()
     with pytest.raises(ValueError, match="two producers report metric 'abs'"):
         op.process(fusion_frame(0, {"a1": map_msg(0, "abs", 0.1), "a2": map_msg(0, "abs", 0.2)}))
