@@ -118,12 +118,13 @@ def weigh_down_above_lidar(
         return dict(maps)
     if np.ndim(above) != 2:
         raise ValueError(f"weigh_down_above_lidar: the mask has shape {np.shape(above)}; expected (h, w)")
+    above = np.asarray(above, dtype=bool)
     out = {}
     for metric, score_map in maps.items():
         if metric == marked_by:
             out[metric] = score_map
             continue
-        mask = resize_nearest(np.asarray(above, dtype=bool), np.shape(score_map))
+        mask = resize_nearest(above, np.shape(score_map))
         out[metric] = np.where(mask, np.float32(weight) * score_map, score_map).astype(np.float32)
     return out
 
