@@ -6,7 +6,8 @@ lossless mode. A metric that joins or leaves mid-stream is fused in or out from 
 weights set through the control key (`umad set fusion.weights.ssim=0.5`) apply from the next frame.
 A map marked `no_data` (the lidar difference of a frame without lidar returns) is left out the same way.
 With `above_lidar_weight` below 1, the other maps count that much at the pixels the lidar map marks
-`above_returns` (the sky and what the lidar's beams do not reach; ours).
+`above_returns` (the sky and what the lidar's beams do not reach; ours). With `lidar_camera_exponent`
+above 0, that map (the lidar's) then counts where the other maps disagree too (ours).
 The arithmetic (and the rule for absent metrics) is `umad_common.refine.fuse`.
 """
 
@@ -17,7 +18,7 @@ from pydantic import Field, field_validator
 from umad_common.dataflow import Frame, Input, JoinParams, Operator, Output, input_array
 from umad_common.dataflow.api.messages import Message
 from umad_common.differences import ABOVE_RETURNS_ARRAY
-from umad_common.refine import fuse, used_weights, weigh_down_above_lidar
+from umad_common.refine import fuse, scale_by_camera_agreement, used_weights, weigh_down_above_lidar
 
 DEFAULT_WEIGHTS = {"abs": 0.2, "mse": 0.2, "ssim": 0.2, "perceptual": 0.2, "temporal": 0.2}  # difference `metric` names
 
@@ -45,6 +46,14 @@ class FusionParams(JoinParams):
         description="factor on every other map at the pixels a map marks `above_returns` (the lidar difference: "
         "above every lidar return near the column, the sky and what the beams do not reach); 1 leaves the maps "
         "as they are (the paper's fusion)",
+    )
+    lidar_camera_exponent: float = Field(
+        0.0,
+        ge=0.0,
+        le=4.0,
+        description="the map that marks `above_returns` (the lidar difference's) times the other maps' weighted mean, "
+        "scaled to its frame maximum, to this power, then rescaled to [0, 1]: lidar evidence counts where the camera "
+        "maps disagree too (a parked car the lidar head does not draw, the camera model does); 0 leaves it as it is",
     )
 
 
@@ -83,6 +92,7 @@ class Fusion(Operator):
         weights = self.params.weights
         if above is not None:
             maps = weigh_down_above_lidar(maps, above[1], above[0], self.params.above_lidar_weight)
+            maps = scale_by_camera_agreement(maps, above[0], weights, self.params.lidar_camera_exponent)
         fused = fuse(maps, weights)
         used = used_weights(set(maps), weights)
         meta = {
@@ -93,4 +103,5 @@ class Fusion(Operator):
         }
         if above is not None:
             meta["above_lidar_weight"] = self.params.above_lidar_weight
+            meta["lidar_camera_exponent"] = self.params.lidar_camera_exponent
         return {"fused": Output({"map": fused}, meta)}

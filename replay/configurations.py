@@ -39,6 +39,7 @@ class WeightRow:
     normalization: str = "minmax"  # of the maps it fuses: minmax (as logged, the paper's) or robust (ours)
     every_mode: bool = False  # True: every refinement scored whatever the maps (the shipped row added last)
     above_lidar_weight: float = 1.0  # the camera maps' factor above the lidar's returns (fusion's, ours); 1: none
+    lidar_camera_exponent: float = 0.0  # the lidar map scaled by the camera maps' agreement (fusion's, ours); 0: none
 
     @property
     def modes(self) -> tuple[str, ...]:
@@ -112,6 +113,7 @@ def shipped_row_index(rows: list[WeightRow], shipped: dict | None) -> int | None
             if row.normalization == "minmax"
             and row.weights == weights
             and row.above_lidar_weight == shipped.get("above_lidar_weight", 1.0)
+            and row.lidar_camera_exponent == shipped.get("lidar_camera_exponent", 0.0)
             and row.scores(shipped["mode"])
         ),
         None,
@@ -122,8 +124,14 @@ def with_shipped_row(rows: list[WeightRow], shipped: dict | None) -> list[Weight
     """`rows`, and the shipped weights as one more row (every refinement scored) where none has them."""
     if shipped_weights(shipped) is None or shipped_row_index(rows, shipped) is not None:
         return rows
-    above = shipped.get("above_lidar_weight", 1.0)
-    return [*rows, WeightRow(shipped_weights(shipped), extra=True, every_mode=True, above_lidar_weight=above)]
+    row = WeightRow(
+        shipped_weights(shipped),
+        extra=True,
+        every_mode=True,
+        above_lidar_weight=shipped.get("above_lidar_weight", 1.0),
+        lidar_camera_exponent=shipped.get("lidar_camera_exponent", 0.0),
+    )
+    return [*rows, row]
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ from umad_common.refine import (
     fuse,
     only_the_best,
     resize_nearest,
+    scale_by_camera_agreement,
     weigh_down_above_lidar,
     with_pixel_share,
 )
@@ -37,9 +38,12 @@ def row_fused_map(
     maps: dict[str, np.ndarray], row: WeightRow, frame: FrameRecord, shape: tuple[int, int]
 ) -> np.ndarray:
     """One row's fused map of a frame from its normalised `maps`, as the fusion operator makes it
-    (the camera maps weighed down above the lidar's returns where the row does that)."""
+    (the camera maps weighed down above the lidar's returns, then the lidar map scaled by the camera
+    maps' agreement, where the row does that)."""
     weights = {m: float(w) for m, w in row.weights.items()}
     row_maps = weigh_down_above_lidar({m: maps[m] for m in weights}, frame.above_lidar, LIDAR, row.above_lidar_weight)
+    if frame.above_lidar is not None:
+        row_maps = scale_by_camera_agreement(row_maps, LIDAR, weights, row.lidar_camera_exponent)
     return fuse(row_maps, weights, shape)
 
 

@@ -49,6 +49,7 @@ from tqdm import tqdm
 from umad_common.dataflow.process.replica import one_blas_thread
 from umad_common.dataflow.record.mcap_log import LogError, describe_loss, read_metadata, recording_outcome
 from umad_common.metrics.pixel import PixelMetrics
+from umad_common.refine import fusion_note
 from umad_replay.component_pass import component_pass
 from umad_replay.configurations import REFINE_MODES, Config, WeightRow, masks_name, weights_label
 from umad_replay.first_pass import OverlayFrame, Sweep, first_pass_share
@@ -93,8 +94,7 @@ class SweepResult:
         label = weights_label(self.rows[row].weights)
         normalization = self.rows[row].normalization
         label = label if normalization == "minmax" else f"{label}, {normalization}"
-        above = self.rows[row].above_lidar_weight
-        return label if above == 1.0 else f"{label}, camera ×{above:g} above the lidar"
+        return label + fusion_note(self.rows[row].above_lidar_weight, self.rows[row].lidar_camera_exponent)
 
     def _ops_in_order(self) -> list[str]:
         rank = {"gt": 0, "sam": 2}

@@ -604,7 +604,17 @@ def test_the_lidar_map_marks_the_pixels_above_its_returns_and_fusion_weighs_the_
         expected = (np.where(top, weight * camera, camera) + outputs["diff_lidar"].arrays["map"]) / 2
         np.testing.assert_allclose(fused.arrays["map"], expected, rtol=1e-6)
         assert fused.meta["above_lidar_weight"] == weight
-    without_lidar = Fusion({"weights": {"abs": 0.5}, "above_lidar_weight": 0.25})
+    lidar_map = np.random.default_rng(5).random((20, 30)).astype(np.float32)
+    lidar_arrays = {**outputs["diff_lidar"].arrays, "map": lidar_map}
+    maps["diff_lidar"] = Message("run", 0, meta=outputs["diff_lidar"].meta, arrays=lidar_arrays)
+    params = {"weights": {"abs": 0.5, "lidar": 0.5}, "above_lidar_weight": 0.25, "lidar_camera_exponent": 0.5}
+    fused = Fusion(params).process(Frame("run", 0, 0, many={"maps": maps}))["fused"]
+    weighed = np.where(top, 0.25 * camera, camera)
+    scaled = lidar_map * np.sqrt(weighed / weighed.max())  # the lidar map where the camera map disagrees too
+    expected = (weighed + (scaled - scaled.min()) / (scaled.max() - scaled.min())) / 2
+    np.testing.assert_allclose(fused.arrays["map"], expected, rtol=1e-5, atol=1e-6)
+    assert fused.meta["lidar_camera_exponent"] == 0.5
+    without_lidar = Fusion({"weights": {"abs": 0.5}, "above_lidar_weight": 0.25, "lidar_camera_exponent": 0.5})
     alone = without_lidar.process(Frame("run", 0, 0, many={"maps": {"diff_abs": maps["diff_abs"]}}))["fused"]
     np.testing.assert_array_equal(alone.arrays["map"], camera)  # nothing marks the pixels: the map as it is
-    assert "above_lidar_weight" not in alone.meta
+    assert "above_lidar_weight" not in alone.meta and "lidar_camera_exponent" not in alone.meta

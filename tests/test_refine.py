@@ -10,7 +10,7 @@ from pydantic import ValidationError
 
 from umad_common.dataflow import Frame
 from umad_common.dataflow.api.messages import Message
-from umad_common.refine import fuse, mask_scores, refine, resize_nearest
+from umad_common.refine import fuse, mask_scores, refine, resize_nearest, scale_by_camera_agreement
 from umad_operators.fusion import Fusion
 from umad_operators.mask_refiner import MaskRefiner
 
@@ -270,3 +270,31 @@ def test_mask_refiner_operator_resizes_masks_nearest():
         MaskRefiner({"mode": "median"})
     with pytest.raises(ValidationError, match="pixel_share"):
         MaskRefiner({"mode": "mean_pixel", "pixel_share": 2})
+
+
+def test_the_lidar_map_counts_where_the_camera_maps_disagree_too():
+    rng = np.random.default_rng(3)
+    abs_map, ssim_map, lidar = (rng.random((6, 8)).astype(np.float32) for _ in range(3))
+    mse_map = np.ones((6, 8), np.float32)
+    maps = {"abs": abs_map, "ssim": ssim_map, "mse": mse_map, "lidar": lidar}
+    weights = {"abs": 0.2, "ssim": 0.6, "mse": 0.0, "lidar": 0.5}
+    out = scale_by_camera_agreement(maps, "lidar", weights, 0.5)
+    camera = (0.2 * abs_map + 0.6 * ssim_map) / 0.8  # mse has weight 0: no part of the agreement
+    scaled = lidar * np.sqrt(camera / camera.max())
+    np.testing.assert_allclose(out["lidar"], (scaled - scaled.min()) / (scaled.max() - scaled.min()), atol=1e-6)
+    assert all(out[m] is maps[m] for m in ("abs", "ssim", "mse"))
+
+    equal_lidar = {"abs": np.array([[0.1, 0.9]], np.float32), "lidar": np.array([[0.8, 0.8]], np.float32)}
+    agreed = scale_by_camera_agreement(equal_lidar, "lidar", {"abs": 1.0, "lidar": 1.0}, 1.0)["lidar"]
+    assert agreed[0, 0] < agreed[0, 1]  # the same lidar evidence counts less where the camera map agrees
+
+    for unchanged in (
+        scale_by_camera_agreement(maps, "lidar", weights, 0.0),  # exponent 0: the paper's fusion
+        scale_by_camera_agreement({"lidar": lidar}, "lidar", weights, 0.5),  # no camera map
+        scale_by_camera_agreement({**maps, "abs": 0 * abs_map, "ssim": 0 * ssim_map}, "lidar", weights, 0.5),
+    ):
+        assert unchanged["lidar"] is lidar
+    with pytest.raises(ValueError, match="exponent is -1"):
+        scale_by_camera_agreement(maps, "lidar", weights, -1.0)
+    with pytest.raises(ValidationError, match="lidar_camera_exponent"):
+        Fusion({"lidar_camera_exponent": -0.5})

@@ -796,10 +796,10 @@ def test_the_shipped_configuration_is_scored_and_leads_the_report(tmp_path):
     assert "shipped masks A / B" in (b / "compare.md").read_text()
 
 
-ABOVE_LIDAR_GRAPH = SHIPPED_GRAPH.replace(
-    "params: {weights: {abs: 0.5, ssim: 0.5, perceptual: 0.0}}",
-    "params: {weights: {abs: 0.5, ssim: 0.5, lidar: 0.5}, above_lidar_weight: 0.25}",
-)
+def graph_with_lidar(extras: dict) -> str:
+    """SHIPPED_GRAPH fusing a lidar map too, with fusion's `extras` (e.g. above_lidar_weight)."""
+    params = ", ".join(["weights: {abs: 0.5, ssim: 0.5, lidar: 0.5}", *(f"{k}: {v}" for k, v in extras.items())])
+    return SHIPPED_GRAPH.replace("params: {weights: {abs: 0.5, ssim: 0.5, perceptual: 0.0}}", f"params: {{{params}}}")
 
 
 def with_lidar_maps(frames, seed=7):
@@ -815,19 +815,31 @@ def with_lidar_maps(frames, seed=7):
         yield run, seq, [*msgs, ("diff_lidar", "map", truth["lidar_message"].arrays, {"metric": "lidar"})], truth
 
 
-def test_the_shipped_row_weighs_the_camera_down_above_the_lidar_as_the_fusion_operator_does(tmp_path):
+@pytest.mark.parametrize(
+    ("extras", "note"),
+    [
+        ({"above_lidar_weight": 0.25}, ", camera ×0.25 above the lidar"),
+        (
+            {"above_lidar_weight": 0.25, "lidar_camera_exponent": 0.5},
+            ", camera ×0.25 above the lidar, lidar × camera^0.5",
+        ),
+    ],
+)
+def test_the_shipped_row_fuses_the_lidar_map_as_the_fusion_operator_does(tmp_path, extras, note):
     from umad_common.dataflow import Frame
     from umad_operators.fusion import Fusion
 
     path = tmp_path / "run.mcap"
-    metadata = {"graph": ABOVE_LIDAR_GRAPH, "base_dir": str(tmp_path), "version": "t"}
+    metadata = {"graph": graph_with_lidar(extras), "base_dir": str(tmp_path), "version": "t"}
     truths = write_log(path, with_lidar_maps(synthetic_frames()), metadata)
     result = sweep_log(path, progress=False, overlay_frames=0, components=False)
-    assert result.rows[result.shipped.row].above_lidar_weight == 0.25
-    assert result.row_label(result.shipped.row) == "abs+ssim (1/2) + lidar 1/3, camera ×0.25 above the lidar"
+    shipped_row = result.rows[result.shipped.row]
+    assert shipped_row.above_lidar_weight == extras["above_lidar_weight"]
+    assert shipped_row.lidar_camera_exponent == extras.get("lidar_camera_exponent", 0.0)
+    assert result.row_label(result.shipped.row) == "abs+ssim (1/2) + lidar 1/3" + note
 
-    def graph_map(t, above_lidar_weight):
-        fusion = Fusion({"weights": {"abs": 0.5, "ssim": 0.5, "lidar": 0.5}, "above_lidar_weight": above_lidar_weight})
+    def graph_map(t, extras):
+        fusion = Fusion({"weights": {"abs": 0.5, "ssim": 0.5, "lidar": 0.5}, **extras})
         maps = {
             op: Message("r", 0, meta={"metric": METRIC_OPS[op]}, arrays={"map": t["maps"][op]})
             for op in ("diff_abs", "diff_ssim")
@@ -837,9 +849,9 @@ def test_the_shipped_row_weighs_the_camera_down_above_the_lidar_as_the_fusion_op
         return refined_mean(fused, t["tiles"])
 
     scores = result.metrics[result.shipped].compute()
-    assert (scores["AP"], scores["AUROC"]) == pytest.approx(direct(truths, lambda t: graph_map(t, 0.25)), abs=2e-3)
-    plain = direct(truths, lambda t: graph_map(t, 1.0))
-    assert (scores["AP"], scores["AUROC"]) != pytest.approx(plain, abs=2e-3)  # the weighing down changes the figures
+    assert (scores["AP"], scores["AUROC"]) == pytest.approx(direct(truths, lambda t: graph_map(t, extras)), abs=2e-3)
+    plain = direct(truths, lambda t: graph_map(t, {}))
+    assert (scores["AP"], scores["AUROC"]) != pytest.approx(plain, abs=2e-3)  # the extras change the figures
 
 
 def test_a_shipped_configuration_that_is_a_row_of_the_table_adds_none():

@@ -16,6 +16,11 @@ Rules (docs/design.md, "Fusion" and "Mask-level refinement"):
   by `weight` at the pixels the lidar difference marks `above_returns` (above every lidar return
   near their column: the sky, and what the beams do not reach), where a camera map's disagreement
   is the light's and no object on the road stands.
+- `scale_by_camera_agreement` (ours, after the weighing): the lidar map (the one that marks them) is
+  multiplied by the other maps' weighted mean, divided by that mean's frame maximum, to the power
+  `exponent`, then min-max rescaled over the frame. The lidar map's evidence counts where the camera
+  maps disagree too: a car the lidar head does not draw but the camera model does loses it, an
+  object neither model draws keeps it.
 - `refine` scores each mask by the `mean` (paper default) or `max` of the fused map over its pixels
   and writes that score to every pixel of the mask. Where masks overlap, the highest score wins.
   `single` (the paper's single mask) keeps only the mask with the highest mean score and gives
@@ -127,6 +132,36 @@ def weigh_down_above_lidar(
         mask = resize_nearest(above, np.shape(score_map))
         out[metric] = np.where(mask, np.float32(weight) * score_map, score_map).astype(np.float32)
     return out
+
+
+def scale_by_camera_agreement(
+    maps: Mapping[str, np.ndarray], lidar: str, weights: Mapping[str, float], exponent: float
+) -> dict[str, np.ndarray]:
+    """`maps` with the `lidar` map times (m / max m) ** `exponent`, m the weighted mean (`fuse`, at the
+    lidar map's size) of the other maps with a positive weight, then min-max rescaled over the frame;
+    unchanged where `exponent` is 0, `lidar` is absent, no other map has weight or m is 0 everywhere."""
+    others = {m: a for m, a in maps.items() if m != lidar and float(weights.get(m, 0.0)) > 0}
+    if exponent == 0 or lidar not in maps or not others:
+        return dict(maps)
+    if exponent < 0:
+        raise ValueError(f"scale_by_camera_agreement: the exponent is {exponent}; expected 0 or more")
+    lidar_map = np.asarray(maps[lidar], dtype=np.float32)
+    agreement = fuse(others, weights, lidar_map.shape)
+    peak = float(agreement.max())
+    if not peak > 0:
+        return dict(maps)
+    scaled = lidar_map * (agreement / np.float32(peak)) ** np.float32(exponent)
+    low, high = float(scaled.min()), float(scaled.max())
+    rescaled = (scaled - low) / (high - low) if high > low else np.zeros_like(scaled)
+    return {**maps, lidar: rescaled.astype(np.float32)}
+
+
+def fusion_note(above_lidar_weight: float = 1.0, lidar_camera_exponent: float = 0.0) -> str:
+    """How a fusion departs from the paper's weighted mean, for a row's name: `, camera ×0.25 above
+    the lidar, lidar × camera^0.5`; empty for the paper's fusion."""
+    above = "" if above_lidar_weight == 1.0 else f", camera ×{above_lidar_weight:g} above the lidar"
+    agreement = "" if lidar_camera_exponent == 0.0 else f", lidar × camera^{lidar_camera_exponent:g}"
+    return above + agreement
 
 
 def used_weights(metrics: list[str] | set[str], weights: Mapping[str, float]) -> dict[str, float]:

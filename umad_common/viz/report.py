@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from umad_common.datasets.anovox import ANOMALY_CATEGORIES
 from umad_common.metrics.pixel import PixelMetrics
+from umad_common.refine import fusion_note
 from umad_common.viz.diagnosis import diagnosis_json, diagnosis_section
 from umad_common.viz.headline import SCORES, headline_figures, headline_tables, percent, protocol_line
 from umad_common.viz.pages import Cell, Page, Section, Table, render_table_markdown, text_cells, write_page
@@ -70,6 +71,7 @@ def table_rows(result: SweepResult) -> list[dict[str, Any]]:
                 "extra_weights": result.rows[config.row].extra,
                 "normalization": result.rows[config.row].normalization,
                 "above_lidar_weight": result.rows[config.row].above_lidar_weight,
+                "lidar_camera_exponent": result.rows[config.row].lidar_camera_exponent,
                 "segmenter": config.segmenter,
                 "mode": config.mode,
                 "AP": _number(scores["AP"]),
@@ -146,13 +148,11 @@ def _fractions(weights: dict[str, float]) -> list[str]:
 
 
 def _normalization_note(row: dict[str, Any]) -> str:
-    """`, robust` for a row fused from robust-normalised maps, `, camera ×w above the lidar` for one
-    whose camera maps fusion weighed down above the lidar's returns; nothing for the paper's fusion."""
+    """`, robust` for a row fused from robust-normalised maps, then how its fusion departs from the
+    paper's (`fusion_note`); nothing for the paper's fusion of min-max maps."""
     normalization = row.get("normalization", "minmax")
-    above = row.get("above_lidar_weight", 1.0)
-    return ("" if normalization == "minmax" else f", {normalization}") + (
-        "" if above == 1.0 else f", camera ×{above:g} above the lidar"
-    )
+    extras = fusion_note(row.get("above_lidar_weight", 1.0), row.get("lidar_camera_exponent", 0.0))
+    return ("" if normalization == "minmax" else f", {normalization}") + extras
 
 
 def _row_name(row: dict[str, Any]) -> str:
