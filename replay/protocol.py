@@ -78,7 +78,8 @@ def graph_operators(metadata: dict[str, str]) -> dict[str, tuple[str, dict[str, 
 
 def shipped_configuration(metadata: dict[str, str]) -> dict[str, Any] | None:
     """What the graph as run produced, as the sweep names configurations: the fusion weights (metric ->
-    weight > 0, as the fusion operator had them), the label-free segmenter op and the refinement mode.
+    weight > 0, as the fusion operator had them), its `above_lidar_weight` and `lidar_camera_exponent`, the
+    label-free segmenter op and the refinement mode.
 
     The shipped configuration is the first mask refiner in the graph whose masks are not the ground
     truth's (in the default graph `refine_unsup`: `geometry` masks, `mean_pixel`); a graph without one
