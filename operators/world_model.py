@@ -46,7 +46,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from umad_common.dataflow import Frame, Input, Operator, Output, input_array
 from umad_common.datasets.sensor_rig import SensorRig
-from umad_common.models.device import DeviceName, device_field, resolve_device
+from umad_common.models.device import DeviceName, bf16_supported, device_field, resolve_device
 
 if TYPE_CHECKING:
     import torch
@@ -78,11 +78,12 @@ class WorldModelParams(BaseModel):
     )
     threads: int = Field(default=1, ge=1, description="torch CPU threads of this process")
     device: DeviceName = device_field()
-    precision: Literal["float32", "bfloat16"] = Field(
+    precision: Literal["float32", "bfloat16", "auto"] = Field(
         default="float32",
         description="bfloat16: the model runs under bfloat16 autocast (less CPU on a CPU with AVX-512 BF16; AP and "
-        "FPR95 those of float32 to a fraction of a point on validation seed 2, docs/experiments.md); "
-        "the images it publishes stay float32",
+        "FPR95 those of float32 to a fraction of a point on validation seed 2, docs/experiments.md; on a CPU "
+        "without it, about 4x the CPU of float32); auto: bfloat16 where the device has fast bfloat16 kernels, "
+        "else float32; the images it publishes stay float32",
     )
 
 
@@ -125,6 +126,15 @@ class WorldModelPredictor(Operator):
         self.model, _ = world_model.load_world_model(self.model_path, self.device)
         self.model.fold_upsampling()
         self.config = self.model.config
+        self.bfloat16 = self.params.precision == "bfloat16" or (
+            self.params.precision == "auto" and bf16_supported(self.device)
+        )
+        if self.params.precision == "bfloat16" and not bf16_supported(self.device):
+            self.context.log.warning(
+                "world_model: precision bfloat16 on %s, which has no fast bfloat16 kernels (AVX-512 BF16 or AMX on a "
+                "CPU): about 4x the CPU of float32; precision auto runs float32 here",
+                self.device,
+            )
         if not self.config.lidar_head:
             self.context.log.warning(
                 "world_model: %s has no lidar head (config lidar_head: trained without one, or saved before it existed); "
@@ -238,8 +248,7 @@ class WorldModelPredictor(Operator):
         return advanced
 
     def process(self, frame: Frame) -> dict[str, Output]:
-        bfloat16 = self.params.precision == "bfloat16"
-        with self.torch.no_grad(), self.torch.autocast(self.device.type, self.torch.bfloat16, enabled=bfloat16):
+        with self.torch.no_grad(), self.torch.autocast(self.device.type, self.torch.bfloat16, enabled=self.bfloat16):
             return self.step(frame)
 
     def step(self, frame: Frame) -> dict[str, Output]:
@@ -288,6 +297,7 @@ class WorldModelPredictor(Operator):
             "model_step": bool(model_step),
             "steps": run.steps,
             "trained_frame_step": self.trained_frame_step,
+            "bfloat16": self.bfloat16,
         }
         if gap:
             meta["gap_steps"] = gap  # model steps missed just before this frame (a restart: `steps` starts over)

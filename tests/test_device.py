@@ -185,3 +185,22 @@ def test_world_model_trains_on_the_gpu_like_on_the_cpu(tmp_path):
     assert np.isfinite(gpu_loss) and abs(gpu_loss - cpu_loss) <= 0.05 * abs(cpu_loss), (gpu_loss, cpu_loss)
     trained_on_gpu, _ = load_world_model(tmp_path / "cuda")  # saved from the GPU, loads on the CPU
     assert all(tensor.device.type == "cpu" for tensor in trained_on_gpu.state_dict().values())
+
+
+def test_a_cpu_counts_as_bfloat16_only_with_bfloat16_instructions(tmp_path):
+    """oneDNN runs bfloat16 on any AVX-512 CPU, by conversion, at several times float32's cost: only the
+    instructions themselves (AVX-512 BF16, AMX, Arm BF16) make a CPU count; unknown flags leave oneDNN's word."""
+    from umad_common.models.device import cpu_has_bf16_instructions
+
+    cpuinfo = tmp_path / "cpuinfo"
+    cases = {
+        "flags\t\t: fpu sse avx2 avx512f avx512bw avx512vl avx512_vnni\n": False,
+        "flags\t\t: fpu avx512f avx512_bf16 avx512_vnni\n": True,
+        "flags\t\t: fpu amx_tile amx_bf16\n": True,
+        "Features\t: fp asimd bf16 i8mm\n": True,
+        "processor\t: 0\n": None,
+    }
+    for text, expected in cases.items():
+        cpuinfo.write_text("processor\t: 0\n" + text + "processor\t: 1\n" + text)
+        assert cpu_has_bf16_instructions(cpuinfo) is expected
+    assert cpu_has_bf16_instructions(tmp_path / "missing") is None

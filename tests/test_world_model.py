@@ -351,6 +351,26 @@ def test_predictor_in_bfloat16_publishes_float32_images_close_to_float32(weights
         half.update_params(half.Params(model=str(weights), horizon=2, precision="float32"))
 
 
+@pytest.mark.parametrize("fast_bfloat16", [True, False])
+def test_predictor_precision_auto_takes_bfloat16_only_where_the_device_has_fast_kernels(
+    weights, monkeypatch, caplog, fast_bfloat16
+):
+    """`precision: auto` (the live graph's) runs bfloat16 where the device has fast bfloat16 kernels and
+    float32 elsewhere, where bfloat16 autocast costs several times the CPU; an explicit `bfloat16` is
+    kept there, with a warning; the frame's meta says which ran."""
+    import umad_operators.world_model as operator_module
+
+    monkeypatch.setattr(operator_module, "bf16_supported", lambda device: fast_bfloat16)
+    frame = sensor_frame("run_a", 0, np.random.default_rng(0))
+    ran = {
+        precision: WorldModelPredictor({"model": str(weights), "precision": precision}).process(frame)["frame"].meta
+        for precision in ("float32", "auto", "bfloat16")
+    }
+    assert [ran[p]["bfloat16"] for p in ("float32", "auto", "bfloat16")] == [False, fast_bfloat16, True]
+    warned = "no fast bfloat16 kernels" in caplog.text
+    assert warned is not fast_bfloat16
+
+
 def test_predictor_fails_early_on_missing_or_mismatched_weights(tmp_path, weights):
     with pytest.raises(WeightsError, match="not found"):
         WorldModelPredictor({"model": str(tmp_path / "nothing.safetensors")})

@@ -9,6 +9,7 @@ not here, so a graph's parameters can be checked without it.
 from __future__ import annotations
 
 import re
+from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 from pydantic import AfterValidator, Field
@@ -62,10 +63,28 @@ def resolve_device(name: str) -> torch.device:
 
 
 def bf16_supported(device: torch.device) -> bool:
-    """Whether bfloat16 autocast is fast and exact enough to train in on `device`: a GPU with bfloat16
-    (Ampere and later), or a CPU with oneDNN's bfloat16 kernels (AVX-512 BF16 / AMX)."""
+    """Whether bfloat16 autocast is fast and exact enough to train and run in on `device`: a GPU with
+    bfloat16 (Ampere and later), or a CPU with bfloat16 instructions (AVX-512 BF16 or AMX on x86, BF16
+    on Arm). oneDNN also runs bfloat16 on a plain AVX-512 CPU, by conversion: 3.4x the world model's
+    CPU of float32 there (docs/experiments.md), so that CPU counts as without."""
     import torch
 
     if device.type == "cuda":
         return torch.cuda.is_bf16_supported()
-    return torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    native = cpu_has_bf16_instructions()
+    return torch.ops.mkldnn._is_mkldnn_bf16_supported() and native is not False
+
+
+def cpu_has_bf16_instructions(cpuinfo: Path = Path("/proc/cpuinfo")) -> bool | None:
+    """Whether the CPU's flags (Linux's `cpuinfo`: x86 `flags`, Arm `Features`) name bfloat16
+    instructions: `avx512_bf16`, `amx_bf16` or `bf16`; None where the file or its flags are missing."""
+    try:
+        text = cpuinfo.read_text()
+    except OSError:
+        return None
+    flags: set[str] = set()
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() in ("flags", "Features"):
+            flags.update(value.split())
+    return bool(flags & {"avx512_bf16", "amx_bf16", "bf16"}) if flags else None
