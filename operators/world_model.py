@@ -126,10 +126,9 @@ class WorldModelPredictor(Operator):
         self.model, _ = world_model.load_world_model(self.model_path, self.device)
         self.model.fold_upsampling()
         self.config = self.model.config
-        self.bfloat16 = self.params.precision == "bfloat16" or (
-            self.params.precision == "auto" and bf16_supported(self.device)
-        )
-        if self.params.precision == "bfloat16" and not bf16_supported(self.device):
+        fast_bfloat16 = bf16_supported(self.device)
+        self.bfloat16 = self.params.precision == "bfloat16" or (self.params.precision == "auto" and fast_bfloat16)
+        if self.params.precision == "bfloat16" and not fast_bfloat16:
             self.context.log.warning(
                 "world_model: precision bfloat16 on %s, which has no fast bfloat16 kernels (AVX-512 BF16 or AMX on a "
                 "CPU): about 4x the CPU of float32; precision auto runs float32 here",

@@ -40,6 +40,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from umad_common.differences.normalization import minmax
+
 RefineMode = Literal["mean", "mean_pixel", "max", "single", "single_keep_raw", "none"]
 UncoveredRule = Literal["keep", "zero"]
 REFINE_MODES: tuple[str, ...] = ("mean", "mean_pixel", "max", "single", "single_keep_raw", "none")
@@ -151,9 +153,7 @@ def scale_by_camera_agreement(
     if not peak > 0:
         return dict(maps)
     scaled = lidar_map * (agreement / np.float32(peak)) ** np.float32(exponent)
-    low, high = float(scaled.min()), float(scaled.max())
-    rescaled = (scaled - low) / (high - low) if high > low else np.zeros_like(scaled)
-    return {**maps, lidar: rescaled.astype(np.float32)}
+    return {**maps, lidar: minmax(scaled)}
 
 
 def fusion_note(above_lidar_weight: float = 1.0, lidar_camera_exponent: float = 0.0) -> str:
